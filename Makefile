@@ -1,0 +1,52 @@
+# One-command set-up and runs. Every target creates .venv on first use; nothing is installed system-wide.
+# torch (CPU build) is installed before stable-baselines3 so pip never pulls the multi-GB CUDA build.
+
+PYTHON ?= python3
+VENV   := .venv
+BIN    := $(VENV)/bin
+PY     := $(BIN)/python
+
+export NUMBA_CACHE_DIR ?= $(CURDIR)/.numba_cache
+export NUMBA_NUM_THREADS ?= 2
+export OMP_NUM_THREADS ?= 2
+
+.PHONY: setup setup-train run test validate bench lint clean
+
+$(PY):
+	$(PYTHON) -m venv $(VENV)
+	$(PY) -m pip install --quiet --upgrade pip
+
+# Core package + test/render/mesh extras. Re-run when pyproject.toml changes.
+$(VENV)/.core: pyproject.toml | $(PY)
+	$(PY) -m pip install --quiet -e ".[dev,render]"
+	touch $@
+
+# RL extras: CPU torch first, then SB3 and friends.
+$(VENV)/.train: pyproject.toml $(VENV)/.core
+	$(PY) -m pip install --quiet "torch==2.13.0"
+	$(PY) -m pip install --quiet -e ".[train]"
+	touch $@
+
+setup: $(VENV)/.core
+
+setup-train: $(VENV)/.train
+
+## The main job (README quick start, command 1).
+run: setup
+	$(PY) scripts/demo_tissue.py
+
+## The test suite (README quick start, command 2; CI runs exactly this).
+test: setup
+	$(PY) -m pytest -q
+
+validate: setup
+	$(PY) scripts/validate_physics.py
+
+bench: setup
+	$(PY) scripts/bench.py
+
+lint: setup
+	$(BIN)/ruff check suture_gym scripts tests agents
+
+clean:
+	rm -rf $(VENV) .numba_cache .pytest_cache .ruff_cache out

@@ -1,0 +1,62 @@
+"""Benchmark the simulator (and, once they exist, the environments) on one CPU core.
+
+Usage::
+
+    python scripts/bench.py            # table on stdout
+    python scripts/bench.py --json     # list of {scene, tets, particles, strand_nodes, substep_ms, ...}
+    python scripts/bench.py --only paper_cube_tissue
+
+Times are medians over repeated substeps after a warm-up (numba compilation excluded).
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import platform
+import sys
+
+from _common import configure
+
+configure(threads=1)
+
+from tqdm import tqdm  # noqa: E402
+
+from suture_gym.measure import BENCHMARKS, load_all  # noqa: E402
+
+
+def main(argv: list[str] | None = None) -> int:
+    parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    parser.add_argument("--json", action="store_true", help="print the results as JSON")
+    parser.add_argument("--only", nargs="+", metavar="NAME", help="run only these benchmarks")
+    parser.add_argument("--list", action="store_true", help="list the registered benchmarks and exit")
+    args = parser.parse_args(argv)
+
+    load_all()
+    if args.list:
+        print("\n".join(BENCHMARKS))
+        return 0
+    names = args.only or list(BENCHMARKS)
+    unknown = [n for n in names if n not in BENCHMARKS]
+    if unknown:
+        parser.error(f"unknown benchmark(s) {unknown}; known: {sorted(BENCHMARKS)}")
+
+    results = []
+    bar = tqdm(names, desc="bench", unit="bench", file=sys.stderr, disable=None)
+    for name in bar:
+        bar.set_postfix_str(name)
+        entry = {"scene": name, **BENCHMARKS[name]()}
+        entry["machine"] = f"{platform.processor() or platform.machine()}, 1 thread"
+        results.append(entry)
+
+    if args.json:
+        print(json.dumps(results, indent=2))
+    else:
+        for r in results:
+            fields = ", ".join(f"{k}={v:.4g}" if isinstance(v, float) else f"{k}={v}" for k, v in r.items())
+            print(fields)
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())
