@@ -1,0 +1,272 @@
+"""Scene builders: tissue geometry, material and supports, returned as a :class:`Scene`.
+
+Every builder documents its geometry in metres in a right-handed frame with gravity along ``-z`` (unless
+overridden) and returns the model, a state at rest, named particle regions and the parameters used.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+
+import numpy as np
+
+from suture_gym.sim.mesh import TetMesh, box_tet_grid
+from suture_gym.sim.model import Model, State, TissueMaterial, TissueModel, TissueState
+
+STANDARD_GRAVITY = 9.81  # m/s^2
+
+
+@dataclass
+class Scene:
+    """A built scene.
+
+    Attributes:
+        model: the static :class:`~suture_gym.sim.model.Model`.
+        state: the initial :class:`~suture_gym.sim.model.State`: at rest, in the rest configuration unless
+            the builder says otherwise.
+        regions: named ``(k,) int32`` particle index arrays (documented per builder).
+        settings: every parameter the builder used, JSON-serialisable.
+    """
+
+    model: Model
+    state: State
+    regions: dict[str, np.ndarray] = field(default_factory=dict)
+    settings: dict = field(default_factory=dict)
+
+
+def _material_settings(material: TissueMaterial) -> dict:
+    return {
+        "youngs_modulus_pa": material.youngs_modulus,
+        "poisson_ratio": material.poisson_ratio,
+        "density_kg_m3": material.density,
+        "damping_per_s": material.damping,
+    }
+
+
+def _scene(
+    mesh: TetMesh,
+    material: TissueMaterial,
+    pinned: np.ndarray,
+    gravity,
+    regions: dict[str, np.ndarray],
+    settings: dict,
+    rollers=None,
+) -> Scene:
+    """Model, rest state, regions (boolean masks turned into index arrays) and settings of a scene."""
+    tissue = TissueModel.from_mesh(mesh, material, pinned=pinned, rollers=rollers)
+    model = Model(tissue=tissue, gravity=gravity)
+    state = State(tissue=TissueState.at_rest(tissue))
+    settings = {
+        **settings,
+        "material": _material_settings(material),
+        "gravity_m_s2": model.gravity.tolist(),
+        "tets": tissue.tet_count,
+        "particles": tissue.particle_count,
+    }
+    indices = {name: np.flatnonzero(mask).astype(np.int32) for name, mask in regions.items()}
+    return Scene(model=model, state=state, regions=indices, settings=settings)
+
+
+def _check_positive(name: str, value: float) -> float:
+    value = float(value)
+    if not (np.isfinite(value) and value > 0):
+        raise ValueError(f"{name} must be a positive finite length in metres, got {value!r}")
+    return value
+
+
+def hanging_bar(
+    length: float = 0.1,
+    width: float = 0.01,
+    cells: tuple[int, int, int] = (2, 2, 20),
+    material: TissueMaterial | None = None,
+    scheme: str = "five",
+    gravity: float = STANDARD_GRAVITY,
+) -> Scene:
+    """A square bar hanging under gravity from its clamped top face.
+
+    Geometry: ``x, y in [0, width]``, ``z in [-length, 0]``; the ``z = 0`` face is pinned; gravity
+    ``(0, 0, -gravity)``. Analytic elongation for small strain: ``rho g L^2 / (2 E)``.
+
+    Regions: ``top`` (pinned face), ``bottom`` (free end face ``z = -length``).
+    """
+    length, width = _check_positive("length", length), _check_positive("width", width)
+    material = material or TissueMaterial()
+    mesh = box_tet_grid((width, width, length), cells, origin=(0.0, 0.0, -length), scheme=scheme)
+    z = mesh.vertices[:, 2]
+    tol = 1e-9 * length
+    top = np.abs(z) <= tol
+    bottom = np.abs(z + length) <= tol
+    settings = {
+        "scene": "hanging_bar",
+        "length_m": length,
+        "width_m": width,
+        "cells": [int(c) for c in cells],
+        "scheme": scheme,
+    }
+    return _scene(mesh, material, top, (0.0, 0.0, -gravity), {"top": top, "bottom": bottom}, settings)
+
+
+def cantilever(
+    length: float = 0.1,
+    thickness: float = 0.01,
+    width: float = 0.01,
+    cells: tuple[int, int, int] = (20, 2, 2),
+    material: TissueMaterial | None = None,
+    scheme: str = "five",
+    gravity: float = STANDARD_GRAVITY,
+) -> Scene:
+    """A horizontal beam clamped at one end, bending under its own weight.
+
+    Geometry: ``x in [0, length]`` (beam axis), ``y in [0, width]``, ``z in [0, thickness]``; the ``x = 0``
+    face is pinned; gravity ``(0, 0, -gravity)``. Euler-Bernoulli tip deflection ``q L^4 / (8 E I)`` with
+    ``q = rho g width thickness`` and ``I = width thickness^3 / 12``.
+
+    Regions: ``clamped`` (pinned face), ``tip`` (free end face ``x = length``).
+    """
+    length = _check_positive("length", length)
+    thickness, width = _check_positive("thickness", thickness), _check_positive("width", width)
+    material = material or TissueMaterial()
+    mesh = box_tet_grid((length, width, thickness), cells, scheme=scheme)
+    x = mesh.vertices[:, 0]
+    tol = 1e-9 * length
+    clamped = np.abs(x) <= tol
+    tip = np.abs(x - length) <= tol
+    settings = {
+        "scene": "cantilever",
+        "length_m": length,
+        "thickness_m": thickness,
+        "width_m": width,
+        "cells": [int(c) for c in cells],
+        "scheme": scheme,
+    }
+    return _scene(mesh, material, clamped, (0.0, 0.0, -gravity), {"clamped": clamped, "tip": tip}, settings)
+
+
+def compression_block(
+    size: float = 0.02,
+    cells: int = 4,
+    stretch: float = 0.8,
+    material: TissueMaterial | None = None,
+    scheme: str = "five",
+) -> Scene:
+    """A cube squeezed between two frictionless plates, without gravity.
+
+    Geometry: the rest cube is ``[0, size]^3``. Its bottom face slides on the plane ``z = 0`` and its top
+    face on ``z = stretch * size`` (roller supports); the faces ``x = 0`` and ``y = 0`` slide on their
+    planes too (symmetry planes that remove rigid motion without constraining the uniaxial state). The
+    initial state is the rest shape scaled by ``stretch`` along ``z`` (no lateral expansion yet), at rest.
+
+    Regions: ``bottom``, ``top`` (plate faces), ``side_x`` (the free face ``x = size``).
+    """
+    size = _check_positive("size", size)
+    if not (np.isfinite(stretch) and 0.0 < stretch <= 1.0):
+        raise ValueError(f"stretch must lie in (0, 1], got {stretch!r}")
+    material = material or TissueMaterial()
+    mesh = box_tet_grid((size, size, size), (cells, cells, cells), scheme=scheme)
+    v = mesh.vertices
+    tol = 1e-9 * size
+    bottom = np.abs(v[:, 2]) <= tol
+    top = np.abs(v[:, 2] - size) <= tol
+    supports = [  # (face, plane normal, plane offset in m)
+        (bottom, (0.0, 0.0, 1.0), 0.0),  # bottom plate
+        (top, (0.0, 0.0, 1.0), stretch * size),  # top plate
+        (np.abs(v[:, 0]) <= tol, (1.0, 0.0, 0.0), 0.0),  # symmetry plane x = 0
+        (np.abs(v[:, 1]) <= tol, (0.0, 1.0, 0.0), 0.0),  # symmetry plane y = 0
+    ]
+    particle = np.concatenate([np.flatnonzero(face) for face, _, _ in supports])
+    normal = np.concatenate([np.tile(n, (int(face.sum()), 1)) for face, n, _ in supports])
+    offset = np.concatenate([np.full(int(face.sum()), d) for face, _, d in supports])
+    settings = {"scene": "compression_block", "size_m": size, "cells": int(cells), "stretch": stretch, "scheme": scheme}
+    scene = _scene(
+        mesh,
+        material,
+        np.zeros(len(v), dtype=bool),
+        (0.0, 0.0, 0.0),
+        {"bottom": bottom, "top": top, "side_x": np.abs(v[:, 0] - size) <= tol},
+        settings,
+        rollers=(particle, normal, offset),
+    )
+    scene.state.tissue.particle_q[:, 2] *= stretch
+    scene.state.tissue.particle_q_prev[...] = scene.state.tissue.particle_q
+    return scene
+
+
+def two_bar_wound(
+    bar_size: tuple[float, float, float] = (0.095, 0.03, 0.03),
+    cells: tuple[int, int, int] = (19, 6, 6),
+    gap: float = 0.004,
+    material: TissueMaterial | None = None,
+    scheme: str = "five",
+    base: bool = True,
+    gravity: float = STANDARD_GRAVITY,
+) -> Scene:
+    """Two soft bars side by side with a wound gap between their long faces (paper Fig. 5).
+
+    Geometry: bar ``length x width x height = bar_size`` along ``x``. The left bar occupies
+    ``y in [0, width]``, the right bar ``y in [width + gap, 2 width + gap]``; both span ``x in [0, length]``
+    and ``z in [0, height]``. The wound is the gap between the faces ``y = width`` and ``y = width + gap``.
+    Both end faces (``x = 0`` and ``x = length``) of each bar are pinned, as in the paper; with ``base`` the
+    bottom faces (``z = 0``) are pinned too, i.e. the tissue rests on a rigid base (DESIGN.md section 4:
+    the default 1 kPa tissue would otherwise sag by about its own height).
+
+    Regions: ``left_wound_face``, ``right_wound_face`` (the facing long faces), ``left_bar``, ``right_bar``
+    (all particles of each bar), ``top`` (the ``z = height`` faces), ``pinned``.
+    """
+    if len(bar_size) != 3:
+        raise ValueError(f"bar_size must be (length, width, height) in metres, got {bar_size!r}")
+    length = _check_positive("bar length", bar_size[0])
+    width = _check_positive("bar width", bar_size[1])
+    height = _check_positive("bar height", bar_size[2])
+    gap = _check_positive("gap", gap)
+    material = material or TissueMaterial()
+    left = box_tet_grid((length, width, height), cells, scheme=scheme)
+    right = box_tet_grid((length, width, height), cells, origin=(0.0, width + gap, 0.0), scheme=scheme)
+    vertices = np.concatenate([left.vertices, right.vertices])
+    tets = np.concatenate([left.tets, right.tets + left.vertex_count])
+    mesh = TetMesh(vertices=vertices, tets=tets)
+    v = mesh.vertices
+    tol = 1e-9 * max(bar_size)
+    is_left = np.arange(len(v)) < left.vertex_count
+    ends = (np.abs(v[:, 0]) <= tol) | (np.abs(v[:, 0] - length) <= tol)
+    pinned = ends | ((np.abs(v[:, 2]) <= tol) if base else np.zeros(len(v), dtype=bool))
+    regions = {
+        "left_wound_face": is_left & (np.abs(v[:, 1] - width) <= tol),
+        "right_wound_face": ~is_left & (np.abs(v[:, 1] - width - gap) <= tol),
+        "left_bar": is_left,
+        "right_bar": ~is_left,
+        "top": np.abs(v[:, 2] - height) <= tol,
+        "pinned": pinned,
+    }
+    settings = {
+        "scene": "two_bar_wound",
+        "bar_size_m": [length, width, height],
+        "cells": [int(c) for c in cells],
+        "gap_m": gap,
+        "scheme": scheme,
+        "base": base,
+    }
+    return _scene(mesh, material, pinned, (0.0, 0.0, -gravity), regions, settings)
+
+
+def paper_cube(
+    material: TissueMaterial | None = None,
+    gap: float = 0.004,
+    base: bool = True,
+    gravity: float = STANDARD_GRAVITY,
+) -> Scene:
+    """The paper's Table 1 row 1 scale: :func:`two_bar_wound` with two 19 x 6 x 6-cell bars (five-tet scheme).
+
+    Two bars of 9.5 x 3 x 3 cm with 5 mm cells: 6840 tets and 1960 particles (paper: about 6.8k tets and 2k
+    vertices). See :func:`two_bar_wound` for geometry and regions.
+    """
+    scene = two_bar_wound(
+        bar_size=(0.095, 0.03, 0.03),
+        cells=(19, 6, 6),
+        gap=gap,
+        material=material,
+        scheme="five",
+        base=base,
+        gravity=gravity,
+    )
+    scene.settings["scene"] = "paper_cube"
+    return scene

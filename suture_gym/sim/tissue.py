@@ -1,0 +1,359 @@
+"""Tetrahedral tissue constraints: the stable neo-Hookean XPBD split, solved per tet as a coupled 2x2 system.
+
+Model (Macklin & Muller 2021, "A Constraint-based Formulation of Stable Neo-Hookean Materials", which
+builds on Smith et al. 2018, "Stable Neo-Hookean Flesh Simulation", and XPBD, Macklin et al. 2016). Per tet
+with deformation gradient ``F = Ds Dm^-1``, rest volume ``V0`` and stable-neo-Hookean moduli ``mu`` and
+``lambda`` (see :mod:`suture_gym.sim.model` for how they follow from Young's modulus and Poisson's ratio):
+
+* deviatoric constraint ``C_D(x) = ||F||_F`` with compliance ``alpha_D = 1 / (mu V0)``;
+* hydrostatic constraint ``C_H(x) = det F - gamma``, ``gamma = 1 + mu / lambda``, compliance
+  ``alpha_H = 1 / (lambda V0)``; an incompressible material has ``lambda = inf``: ``alpha_H = 0``,
+  ``gamma = 1``.
+
+Together they store the energy ``V0 (mu/2 ||F||^2 + lambda/2 (det F - gamma)^2)`` whose stress vanishes at
+``F = I``. With ``alpha~ = alpha / dt^2`` and multipliers ``lambda_i`` reset each substep, XPBD asks each
+projection for ``d_lambda`` solving the linearised equations ``C_i + grad C_i . dx + alpha~_i (lambda_i +
+d_lambda_i) = 0`` with ``dx_k = w_k sum_j grad_k C_j d_lambda_j``.
+
+Why the two constraints of one tet are solved together: at rest ``C_D = sqrt(3)`` and
+``C_H = -mu / lambda`` are both non-zero while their gradients are parallel (``dC_D/dF = F / ||F||`` and
+``dC_H/dF = cof F`` are both multiples of the identity). Projected one after the other, each constraint
+moves the nodes to reduce its own value and the other undoes it, so a tet at rest jitters. The coupled
+2x2 solve ``A d_lambda = -C - alpha~ lambda`` with ``A_ij = sum_k w_k grad_k C_i . grad_k C_j +
+alpha~_i delta_ij`` finds the multipliers whose combined correction is exactly zero at rest (the forces of
+the two constraints cancel there), and ``A`` stays invertible for incompressible material
+(``alpha~_H = 0``) because ``alpha~_D > 0``.
+"""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+from numba import njit
+
+#: ``||F||_F`` below which a tet is treated as collapsed to a point and left uncorrected (dimensionless).
+MIN_FROBENIUS = 1e-12
+
+
+@njit(cache=True)
+def deformation_gradient(x: np.ndarray, dm_inv: np.ndarray, f_out: np.ndarray) -> None:
+    """Deformation gradient ``F = Ds Dm^-1`` of one tet.
+
+    Args:
+        x: ``(4, 3)`` current node positions, m.
+        dm_inv: ``(3, 3)`` inverse rest shape matrix, 1/m.
+        f_out: ``(3, 3)`` written with ``F`` (dimensionless).
+    """
+    for i in range(3):
+        d1 = x[1, i] - x[0, i]
+        d2 = x[2, i] - x[0, i]
+        d3 = x[3, i] - x[0, i]
+        for j in range(3):
+            f_out[i, j] = d1 * dm_inv[0, j] + d2 * dm_inv[1, j] + d3 * dm_inv[2, j]
+
+
+@njit(cache=True)
+def neo_hookean_constraints(f: np.ndarray, gamma: float, dcdf_out: np.ndarray) -> tuple[float, float]:
+    """Stable neo-Hookean constraint values and their derivatives with respect to ``F``.
+
+    ``C_D = ||F||_F``, ``dC_D/dF = F / ||F||_F``; ``C_H = det F - gamma``, ``dC_H/dF = cof F`` whose columns
+    are ``f2 x f3, f3 x f1, f1 x f2`` for the columns ``f1, f2, f3`` of ``F`` (Macklin & Muller 2021).
+
+    Args:
+        f: ``(3, 3)`` deformation gradient.
+        gamma: rest value of ``det F``, ``1 + mu / lambda``.
+        dcdf_out: ``(2, 3, 3)`` written with ``dC_D/dF`` and ``dC_H/dF``; both zero for a tet collapsed to a
+            point (``||F|| < MIN_FROBENIUS``), which then gets no correction.
+
+    Returns:
+        ``(C_D, C_H)``.
+    """
+    norm = 0.0
+    for i in range(3):
+        for j in range(3):
+            norm += f[i, j] * f[i, j]
+    norm = math.sqrt(norm)
+    if norm < MIN_FROBENIUS:
+        for c in range(2):
+            for i in range(3):
+                for j in range(3):
+                    dcdf_out[c, i, j] = 0.0
+        return norm, -gamma
+    for i in range(3):
+        for j in range(3):
+            dcdf_out[0, i, j] = f[i, j] / norm
+    # Columns of the cofactor matrix: cross products of the other two columns of F.
+    for j in range(3):
+        a = (j + 1) % 3
+        b = (j + 2) % 3
+        dcdf_out[1, 0, j] = f[1, a] * f[2, b] - f[2, a] * f[1, b]
+        dcdf_out[1, 1, j] = f[2, a] * f[0, b] - f[0, a] * f[2, b]
+        dcdf_out[1, 2, j] = f[0, a] * f[1, b] - f[1, a] * f[0, b]
+    det = f[0, 0] * dcdf_out[1, 0, 0] + f[1, 0] * dcdf_out[1, 1, 0] + f[2, 0] * dcdf_out[1, 2, 0]
+    return norm, det - gamma
+
+
+@njit(cache=True)
+def node_gradients(dcdf: np.ndarray, dm_inv: np.ndarray, grad_out: np.ndarray) -> None:
+    """Node gradients ``dC/dx_k`` from ``dC/dF``.
+
+    ``dC/dx_k = (dC/dF Dm^-T)[:, k - 1]`` for ``k = 1, 2, 3`` and ``dC/dx_0 = -sum_k dC/dx_k``.
+
+    Args:
+        dcdf: ``(m, 3, 3)`` derivatives of ``m`` constraints with respect to ``F``.
+        dm_inv: ``(3, 3)`` inverse rest shape matrix, 1/m.
+        grad_out: ``(m, 4, 3)`` written with the node gradients, 1/m.
+    """
+    for c in range(dcdf.shape[0]):
+        for i in range(3):
+            total = 0.0
+            for k in range(3):
+                g = dcdf[c, i, 0] * dm_inv[k, 0] + dcdf[c, i, 1] * dm_inv[k, 1] + dcdf[c, i, 2] * dm_inv[k, 2]
+                grad_out[c, k + 1, i] = g
+                total += g
+            grad_out[c, 0, i] = -total
+
+
+@njit(cache=True)
+def coupled_multiplier_update(
+    c_dev: float,
+    c_hyd: float,
+    grad: np.ndarray,
+    w: np.ndarray,
+    alpha_tilde_dev: float,
+    alpha_tilde_hyd: float,
+    lambda_dev: float,
+    lambda_hyd: float,
+) -> tuple[float, float]:
+    """Multiplier increments of the coupled deviatoric/hydrostatic XPBD solve of one tet.
+
+    Solves ``A d_lambda = b`` with ``A_ij = sum_k w_k grad_k C_i . grad_k C_j + alpha~_i delta_ij`` and
+    ``b_i = -C_i - alpha~_i lambda_i``. The determinant is assembled as
+    ``G + alpha~_D A'_HH + alpha~_H A'_DD + alpha~_D alpha~_H`` with the Gram determinant
+    ``G = A'_DD A'_HH - A'_DH^2 >= 0`` clamped at zero against round-off (``A'`` is ``A`` without
+    compliance), so it is positive whenever ``alpha~_D > 0`` and the hydrostatic row is not empty. When it
+    is not (a flattened tet of incompressible material: ``cof F = 0``, ``alpha~_H = 0``), the deviatoric
+    constraint is solved alone.
+
+    Args:
+        c_dev, c_hyd: constraint values ``C_D``, ``C_H``.
+        grad: ``(2, 4, 3)`` node gradients of ``C_D`` and ``C_H``, 1/m.
+        w: ``(4,)`` inverse masses of the tet's nodes, 1/kg (0 for pinned nodes).
+        alpha_tilde_dev, alpha_tilde_hyd: ``alpha / dt^2`` of each constraint, 1/(J s^2).
+        lambda_dev, lambda_hyd: multipliers accumulated so far in this substep, J s^2.
+
+    Returns:
+        ``(d_lambda_D, d_lambda_H)`` in J s^2.
+    """
+    a_dd = 0.0
+    a_dh = 0.0
+    a_hh = 0.0
+    for k in range(4):
+        gd0, gd1, gd2 = grad[0, k, 0], grad[0, k, 1], grad[0, k, 2]
+        gh0, gh1, gh2 = grad[1, k, 0], grad[1, k, 1], grad[1, k, 2]
+        a_dd += w[k] * (gd0 * gd0 + gd1 * gd1 + gd2 * gd2)
+        a_dh += w[k] * (gd0 * gh0 + gd1 * gh1 + gd2 * gh2)
+        a_hh += w[k] * (gh0 * gh0 + gh1 * gh1 + gh2 * gh2)
+    b_dev = -c_dev - alpha_tilde_dev * lambda_dev
+    b_hyd = -c_hyd - alpha_tilde_hyd * lambda_hyd
+    gram = max(a_dd * a_hh - a_dh * a_dh, 0.0)
+    det = gram + alpha_tilde_dev * a_hh + alpha_tilde_hyd * a_dd + alpha_tilde_dev * alpha_tilde_hyd
+    m_dd = a_dd + alpha_tilde_dev
+    m_hh = a_hh + alpha_tilde_hyd
+    if det > 1e-14 * m_dd * m_hh:
+        return (m_hh * b_dev - a_dh * b_hyd) / det, (m_dd * b_hyd - a_dh * b_dev) / det
+    if m_dd > 0.0:
+        return b_dev / m_dd, 0.0
+    return 0.0, 0.0
+
+
+@njit(cache=True)
+def _gather(q: np.ndarray, inv_mass: np.ndarray, nodes: np.ndarray, x_out: np.ndarray, w_out: np.ndarray) -> None:
+    """Copy the positions and inverse masses of a tet's four nodes into local buffers."""
+    for k in range(4):
+        p = nodes[k]
+        w_out[k] = inv_mass[p]
+        x_out[k, 0] = q[p, 0]
+        x_out[k, 1] = q[p, 1]
+        x_out[k, 2] = q[p, 2]
+
+
+@njit(cache=True)
+def project_tets(
+    inv_mass: np.ndarray,
+    tet_indices: np.ndarray,
+    tet_dm_inv: np.ndarray,
+    tet_rest_volume: np.ndarray,
+    tet_mu: np.ndarray,
+    tet_lambda: np.ndarray,
+    order: np.ndarray,
+    dt: float,
+    q: np.ndarray,
+    multiplier: np.ndarray,
+) -> None:
+    """One Gauss-Seidel sweep of the coupled stable neo-Hookean XPBD projection over the tets in ``order``.
+
+    Per tet: ``C_D = ||F||_F`` (compliance ``1/(mu V0)``) and ``C_H = det F - (1 + mu/lambda)``
+    (compliance ``1/(lambda V0)``), Macklin & Muller 2021; increments from
+    :func:`coupled_multiplier_update`, then ``x_k += w_k (grad_k C_D d_lambda_D + grad_k C_H d_lambda_H)``.
+
+    Args:
+        inv_mass: ``(N,)`` inverse particle masses, 1/kg (0 = pinned).
+        tet_indices: ``(T, 4) int32`` node indices.
+        tet_dm_inv: ``(T, 3, 3)`` inverse rest shape matrices, 1/m.
+        tet_rest_volume: ``(T,)`` rest volumes, m^3.
+        tet_mu: ``(T,)`` deviatoric modulus, Pa.
+        tet_lambda: ``(T,)`` hydrostatic modulus, Pa (``inf`` = incompressible).
+        order: ``(T,) int32`` tets in colour order.
+        dt: substep, s.
+        q: ``(N, 3)`` particle positions, m; corrected in place.
+        multiplier: ``(T, 2)`` XPBD multipliers ``[lambda_D, lambda_H]`` of this substep, J s^2; updated.
+    """
+    x = np.empty((4, 3))
+    w = np.empty(4)
+    f = np.empty((3, 3))
+    dcdf = np.empty((2, 3, 3))
+    grad = np.empty((2, 4, 3))
+    inv_dt2 = 1.0 / (dt * dt)
+    for n in range(order.shape[0]):
+        t = order[n]
+        nodes = tet_indices[t]
+        _gather(q, inv_mass, nodes, x, w)
+        if w[0] + w[1] + w[2] + w[3] == 0.0:
+            continue
+        dm_inv = tet_dm_inv[t]
+        deformation_gradient(x, dm_inv, f)
+        mu = tet_mu[t]
+        lam = tet_lambda[t]
+        c_dev, c_hyd = neo_hookean_constraints(f, 1.0 + mu / lam, dcdf)
+        node_gradients(dcdf, dm_inv, grad)
+        volume = tet_rest_volume[t]
+        d_dev, d_hyd = coupled_multiplier_update(
+            c_dev,
+            c_hyd,
+            grad,
+            w,
+            inv_dt2 / (mu * volume),
+            inv_dt2 / (lam * volume),
+            multiplier[t, 0],
+            multiplier[t, 1],
+        )
+        multiplier[t, 0] += d_dev
+        multiplier[t, 1] += d_hyd
+        for k in range(4):
+            if w[k] > 0.0:
+                p = nodes[k]
+                for i in range(3):
+                    q[p, i] += w[k] * (grad[0, k, i] * d_dev + grad[1, k, i] * d_hyd)
+
+
+@njit(cache=True)
+def tet_residual(
+    tet_indices: np.ndarray,
+    tet_dm_inv: np.ndarray,
+    tet_rest_volume: np.ndarray,
+    tet_mu: np.ndarray,
+    tet_lambda: np.ndarray,
+    order: np.ndarray,
+    q: np.ndarray,
+    multiplier: np.ndarray,
+    dt: float,
+) -> float:
+    """XPBD residual ``sqrt(sum_t sum_i (C_i(x) + alpha~_i lambda_i)^2)`` over both constraints of the tets in
+    ``order`` (the ones the solver projects).
+
+    It vanishes when the multipliers and positions solve the substep's implicit equations; Gauss-Seidel
+    sweeps of :func:`project_tets` drive it down (dimensionless).
+
+    Args:
+        tet_indices, tet_dm_inv, tet_rest_volume, tet_mu, tet_lambda, order: as in :func:`project_tets`.
+        q: ``(N, 3)`` particle positions, m.
+        multiplier: ``(T, 2)`` multipliers of the current substep, J s^2.
+        dt: substep, s.
+    """
+    x = np.empty((4, 3))
+    f = np.empty((3, 3))
+    dcdf = np.empty((2, 3, 3))
+    inv_dt2 = 1.0 / (dt * dt)
+    total = 0.0
+    for n in range(order.shape[0]):
+        t = order[n]
+        for k in range(4):
+            for i in range(3):
+                x[k, i] = q[tet_indices[t, k], i]
+        deformation_gradient(x, tet_dm_inv[t], f)
+        mu = tet_mu[t]
+        lam = tet_lambda[t]
+        c_dev, c_hyd = neo_hookean_constraints(f, 1.0 + mu / lam, dcdf)
+        volume = tet_rest_volume[t]
+        r_dev = c_dev + inv_dt2 / (mu * volume) * multiplier[t, 0]
+        r_hyd = c_hyd + inv_dt2 / (lam * volume) * multiplier[t, 1]
+        total += r_dev * r_dev + r_hyd * r_hyd
+    return math.sqrt(total)
+
+
+@njit(cache=True)
+def tet_elastic_energy(
+    tet_indices: np.ndarray,
+    tet_dm_inv: np.ndarray,
+    tet_rest_volume: np.ndarray,
+    tet_mu: np.ndarray,
+    tet_lambda: np.ndarray,
+    q: np.ndarray,
+) -> float:
+    """Stored elastic energy ``sum_t V0 (mu/2 (||F||^2 - 3) + lambda/2 ((det F - gamma)^2 - (1 - gamma)^2))``, J.
+
+    Shifted so that the rest state has zero energy. For incompressible tets (``lambda = inf``) the
+    hydrostatic term is a hard constraint and contributes nothing.
+    """
+    x = np.empty((4, 3))
+    f = np.empty((3, 3))
+    dcdf = np.empty((2, 3, 3))
+    total = 0.0
+    for t in range(tet_indices.shape[0]):
+        for k in range(4):
+            for i in range(3):
+                x[k, i] = q[tet_indices[t, k], i]
+        deformation_gradient(x, tet_dm_inv[t], f)
+        mu = tet_mu[t]
+        lam = tet_lambda[t]
+        gamma = 1.0 + mu / lam
+        c_dev, c_hyd = neo_hookean_constraints(f, gamma, dcdf)
+        energy = 0.5 * mu * (c_dev * c_dev - 3.0)
+        if math.isfinite(lam):
+            energy += 0.5 * lam * (c_hyd * c_hyd - (1.0 - gamma) * (1.0 - gamma))
+        total += tet_rest_volume[t] * energy
+    return total
+
+
+@njit(cache=True)
+def project_rollers(
+    inv_mass: np.ndarray,
+    roller_particle: np.ndarray,
+    roller_normal: np.ndarray,
+    roller_offset: np.ndarray,
+    q: np.ndarray,
+) -> None:
+    """Hard frictionless plane supports: ``C(x_p) = n . x_p - d = 0``, projected as ``x_p -= C n``.
+
+    A single-particle constraint with zero compliance, so the projection is exact and the particle keeps
+    its tangential motion (a roller support / symmetry plane; position-based constraint of Muller et al.
+    2007, "Position Based Dynamics"). Pinned particles (inverse mass 0) are left alone.
+
+    Args:
+        inv_mass: ``(N,)`` inverse masses, 1/kg.
+        roller_particle: ``(R,) int32`` particle of each support.
+        roller_normal: ``(R, 3)`` unit plane normals.
+        roller_offset: ``(R,)`` plane offsets ``d``, m.
+        q: ``(N, 3)`` positions, m; projected in place.
+    """
+    for r in range(roller_particle.shape[0]):
+        p = roller_particle[r]
+        if inv_mass[p] == 0.0:
+            continue
+        n0, n1, n2 = roller_normal[r, 0], roller_normal[r, 1], roller_normal[r, 2]
+        c = n0 * q[p, 0] + n1 * q[p, 1] + n2 * q[p, 2] - roller_offset[r]
+        q[p, 0] -= c * n0
+        q[p, 1] -= c * n1
+        q[p, 2] -= c * n2
