@@ -1,0 +1,219 @@
+"""Reading, writing and tetrahedralising meshes from files.
+
+- Tetrahedral meshes are read and written with meshio (any format it knows that carries ``tetra`` cells:
+  ``.msh``, ``.vtu``, ``.vtk``, ``.mesh``, ``.xdmf`` ...).
+- Closed surface meshes (OBJ / STL / PLY / OFF / GLB ...) are loaded with trimesh and tetrahedralised by one of
+  two backends:
+
+  ``"tetwild"``  fTetWild through ``pytetwild`` (optional ``mesh`` extra; MPL-2.0). Good-quality tets that
+                 follow the surface; the paper's meshes were made with TetWild.
+  ``"voxel"``    built in, no extra dependency: the structured tet grid of :func:`~suture_gym.sim.mesh.box_tet_grid`
+                 over the surface's bounding box, keeping the cells whose centre lies inside. The boundary is a
+                 staircase at the grid spacing; use it for quick experiments and tests.
+
+  TetGen is deliberately not offered: it bundles AGPL code.
+
+Every mesh returned here has passed :func:`~suture_gym.sim.mesh.validate_tet_mesh`, so a bad file fails at
+load time with a ValueError naming the bad element rather than later inside the solver.
+"""
+
+from __future__ import annotations
+
+import os
+import tempfile
+from pathlib import Path
+
+import numpy as np
+
+from suture_gym.sim.mesh import TetMesh, box_tet_grid, signed_volumes
+
+BACKENDS = ("auto", "tetwild", "voxel")
+
+
+def _require_meshio():
+    try:
+        import meshio
+    except ImportError as exc:  # pragma: no cover - depends on the installed extras
+        raise ImportError("reading/writing tet meshes needs meshio: pip install 'suture_gym[mesh]'") from exc
+    return meshio
+
+
+def read_tet_mesh(path: str | Path) -> TetMesh:
+    """Read a tetrahedral mesh with meshio.
+
+    Args:
+        path: file in any meshio format holding ``tetra`` cells; coordinates are taken to be metres.
+
+    Returns:
+        A validated :class:`TetMesh` with every ``tetra`` block concatenated. Vertices that no tet uses are
+        dropped (surface-only points some writers add), and tets are re-indexed accordingly.
+
+    Raises:
+        FileNotFoundError: the file does not exist.
+        ValueError: the file has no tetrahedra, or the mesh is invalid (inverted/zero-volume tet, non-finite
+            coordinate, open surface...; the message names the element).
+    """
+    meshio = _require_meshio()
+    path = Path(path)
+    if not path.exists():
+        raise FileNotFoundError(f"tet mesh file {str(path)!r} does not exist")
+    data = meshio.read(path)
+    blocks = [np.asarray(c.data) for c in data.cells if c.type == "tetra"]
+    if not blocks:
+        kinds = sorted({c.type for c in data.cells})
+        raise ValueError(f"{str(path)!r} holds no 'tetra' cells (found {kinds}); a volume mesh is needed")
+    tets = np.concatenate(blocks).astype(np.int64)
+    vertices = np.asarray(data.points, dtype=np.float64)
+    if vertices.ndim != 2 or vertices.shape[1] != 3:
+        raise ValueError(f"{str(path)!r}: points must be 3-D, got shape {vertices.shape}")
+    return _compact(vertices, tets)
+
+
+def write_tet_mesh(path: str | Path, mesh: TetMesh, point_data: dict[str, np.ndarray] | None = None) -> None:
+    """Write ``mesh`` (and optional per-vertex arrays, e.g. displacement (N,3) m) with meshio.
+
+    The format follows the file extension (``.vtu`` opens in ParaView).
+    """
+    meshio = _require_meshio()
+    point_data = {k: np.asarray(v) for k, v in (point_data or {}).items()}
+    for name, values in point_data.items():
+        if len(values) != len(mesh.vertices):
+            raise ValueError(
+                f"point_data[{name!r}] has {len(values)} rows; the mesh has {len(mesh.vertices)} vertices"
+            )
+    meshio.write(
+        Path(path),
+        meshio.Mesh(mesh.vertices, [("tetra", np.asarray(mesh.tets, dtype=np.int64))], point_data=point_data),
+    )
+
+
+def load_surface_mesh(source, scale: float = 1.0):
+    """Load a closed triangle surface with trimesh and check it can bound a volume.
+
+    Args:
+        source: a path (OBJ/STL/PLY/OFF/GLB: anything trimesh reads) or a ``trimesh.Trimesh``.
+        scale: factor applied to the coordinates to obtain metres (e.g. 1e-3 for a file in millimetres).
+
+    Returns:
+        ``trimesh.Trimesh`` in metres.
+
+    Raises:
+        ValueError: no triangles, non-finite coordinates, non-positive scale, or a surface that is not
+            watertight (open boundary edges or non-manifold edges), naming the file.
+    """
+    import trimesh
+
+    if not (np.isfinite(scale) and scale > 0):
+        raise ValueError(f"scale must be a positive finite number, got {scale!r}")
+    name = "mesh" if isinstance(source, trimesh.Trimesh) else repr(str(source))
+    if isinstance(source, trimesh.Trimesh):
+        surface = source.copy()
+    else:
+        if not Path(source).exists():
+            raise FileNotFoundError(f"surface mesh file {name} does not exist")
+        surface = trimesh.load(source, force="mesh", process=True)
+    if len(surface.faces) == 0:
+        raise ValueError(f"surface {name} has no triangles")
+    if not np.all(np.isfinite(surface.vertices)):
+        bad = int(np.argwhere(~np.isfinite(surface.vertices))[0, 0])
+        raise ValueError(f"surface {name}: vertex {bad} has a non-finite coordinate")
+    surface.apply_scale(scale)
+    if not surface.is_watertight:
+        raise ValueError(
+            f"surface {name} is not closed (watertight): it has open or non-manifold edges, so it bounds no "
+            "volume; repair it (e.g. trimesh.repair.fill_holes) before tetrahedralising"
+        )
+    if surface.volume < 0:
+        surface.invert()
+    return surface
+
+
+def tetrahedralize_surface(source, edge_length: float, backend: str = "auto", scale: float = 1.0) -> TetMesh:
+    """Fill a closed surface with tetrahedra.
+
+    Args:
+        source: path or ``trimesh.Trimesh`` of a closed surface (see :func:`load_surface_mesh`).
+        edge_length: target tet edge length in metres (the voxel backend's grid spacing).
+        backend: ``"tetwild"``, ``"voxel"``, or ``"auto"`` (tetwild when ``pytetwild`` imports, else voxel).
+        scale: factor converting the file's units to metres.
+
+    Returns:
+        A validated :class:`TetMesh` with positively oriented tets.
+    """
+    if backend not in BACKENDS:
+        raise ValueError(f"backend must be one of {BACKENDS}, got {backend!r}")
+    if not (np.isfinite(edge_length) and edge_length > 0):
+        raise ValueError(f"edge_length must be a positive finite length in metres, got {edge_length!r}")
+    surface = load_surface_mesh(source, scale=scale)
+    if backend == "auto":
+        backend = "tetwild" if _tetwild() is not None else "voxel"
+    if backend == "tetwild":
+        pytetwild = _tetwild()
+        if pytetwild is None:
+            raise ImportError("backend 'tetwild' needs pytetwild: pip install 'suture_gym[mesh]'")
+        # fTetWild writes a debug file (``__tracked_surface.stl``) into the working directory: run it in a
+        # scratch directory so nothing lands in the user's tree.
+        cwd = os.getcwd()
+        with tempfile.TemporaryDirectory(prefix="suture_gym_tetwild_") as scratch:
+            os.chdir(scratch)
+            try:
+                vertices, tets = pytetwild.tetrahedralize(
+                    np.asarray(surface.vertices, dtype=np.float64),
+                    np.asarray(surface.faces, dtype=np.int32),
+                    edge_length_abs=float(edge_length),
+                    num_threads=1,
+                )
+            finally:
+                os.chdir(cwd)
+        return _compact(np.asarray(vertices, dtype=np.float64), _orient(vertices, np.asarray(tets)))
+    return _voxel_tets(surface, float(edge_length))
+
+
+def _tetwild():
+    try:
+        import pytetwild
+    except ImportError:
+        return None
+    return pytetwild
+
+
+def _voxel_tets(surface, spacing: float) -> TetMesh:
+    """Keep the cells of a structured tet grid whose centres lie inside ``surface``."""
+    lo, hi = surface.bounds
+    cells = np.maximum(np.ceil((hi - lo) / spacing).astype(int), 1)
+    size = cells * spacing
+    origin = lo - 0.5 * (size - (hi - lo))
+    grid = box_tet_grid(size=tuple(size), cells=tuple(int(c) for c in cells), origin=tuple(origin))
+    cell_of_tet = np.floor((grid.vertices[grid.tets].mean(axis=1) - origin) / spacing).astype(np.int64)
+    cell_of_tet = np.clip(cell_of_tet, 0, cells - 1)
+    flat = np.ravel_multi_index(cell_of_tet.T, tuple(cells))
+    unique_cells = np.unique(flat)
+    centres = origin + (np.stack(np.unravel_index(unique_cells, tuple(cells)), axis=1) + 0.5) * spacing
+    inside_cells = unique_cells[surface.contains(centres)]
+    if len(inside_cells) == 0:
+        raise ValueError(
+            f"edge_length {spacing} m is too coarse: no grid cell centre lies inside the surface "
+            f"(extent {np.round(hi - lo, 6).tolist()} m)"
+        )
+    keep = np.isin(flat, inside_cells)
+    return _compact(grid.vertices, grid.tets[keep])
+
+
+def _orient(vertices: np.ndarray, tets: np.ndarray) -> np.ndarray:
+    """Swap two indices of every negatively oriented tet so that all have positive volume."""
+    tets = np.array(tets, dtype=np.int64, copy=True)
+    flip = signed_volumes(np.asarray(vertices, dtype=np.float64), tets) < 0
+    tets[flip, 2], tets[flip, 3] = tets[flip, 3].copy(), tets[flip, 2].copy()
+    return tets
+
+
+def _compact(vertices: np.ndarray, tets: np.ndarray) -> TetMesh:
+    """Drop unreferenced vertices, re-index; :class:`TetMesh` validates on construction."""
+    tets = np.asarray(tets, dtype=np.int64)
+    if tets.ndim != 2 or tets.shape[1] != 4:
+        raise ValueError(f"tets must have shape (T, 4), got {tets.shape}")
+    if tets.size and (tets.min() < 0 or tets.max() >= len(vertices)):
+        bad = int(np.argwhere((tets < 0) | (tets >= len(vertices)))[0, 0])
+        raise ValueError(f"tet {bad} references a vertex outside 0..{len(vertices) - 1}: {tets[bad].tolist()}")
+    used, inverse = np.unique(tets, return_inverse=True)
+    return TetMesh(vertices=vertices[used], tets=inverse.reshape(tets.shape).astype(np.int32))
