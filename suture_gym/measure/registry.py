@@ -17,6 +17,7 @@ from dataclasses import asdict, dataclass, field
 MODULES: tuple[str, ...] = (
     "suture_gym.measure.tissue",
     "suture_gym.measure.collision",
+    "suture_gym.measure.render",
 )
 
 CHECKS: dict[str, Callable[[], CheckResult]] = {}
