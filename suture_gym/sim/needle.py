@@ -1,0 +1,634 @@
+"""The rigid curved suture needle: shape and mass properties, Newton-Euler prediction, virtual coupling and
+rigid-body XPBD point corrections (Muller et al. 2020, "Detailed rigid body simulation with extended
+position based dynamics").
+
+Frames
+------
+*Shape frame*: the needle's circle has its centre at the origin and lies in the x-y plane (normal +z). The
+arc is symmetric about +y, like an upside-down U: the tip (HEAD) is at angle ``pi/2 - arc/2`` and the swage
+end at ``pi/2 + arc/2`` (angles from +x about +z). For the half-circle the tip is at ``(R, 0, 0)``, the swage at
+``(-R, 0, 0)`` and the crown at ``(0, R, 0)``; the tip points in -y, so the needle drives forward by turning
+about -z.
+
+*Body frame*: the shape frame translated to the centre of mass of needle + holder (axes unchanged), so the
+inertia tensor is a full 3x3 matrix. The state's pose maps body to world: ``x_world = body_pos + R(body_quat)
+x_body``.
+
+Nodes: ``node_count`` points on the arc centreline, evenly spaced in angle. **Node 0 is the tip (HEAD)** and
+the last node is the swage end, which carries the suture's first node.
+
+Grip: the needle holder grasps the arc at ``grip_fraction`` of the arc length measured from the swage
+(surgeons grasp one third to one half of the way from the swage). The action wrench (force N, torque N m) is
+applied at the grip point, with the torque taken about the grip point. The holder is modelled as a point mass
+at the grip point plus an isotropic rotational inertia about it: the effective mass/inertia of the holder's
+jaws and of the haptic device that moves them.
+"""
+
+from __future__ import annotations
+
+import math
+import numbers
+from dataclasses import dataclass, field
+
+import numpy as np
+from numba import njit
+
+from suture_gym.sim.quat import (
+    quat_conj,
+    quat_from_rotation_vector,
+    quat_mul,
+    quat_normalize,
+    quat_rotate,
+    quat_rotate_inv,
+    quat_rotation_vector,
+    quat_to_matrix,
+)
+
+#: Named arc presets: fraction of a full circle the needle spans.
+ARC_PRESETS: dict[str, float] = {"1/4": 0.5 * math.pi, "3/8": 0.75 * math.pi, "1/2": math.pi, "5/8": 1.25 * math.pi}
+
+
+def _is_real(value) -> bool:
+    return isinstance(value, numbers.Real) and not isinstance(value, bool)
+
+
+def _require_positive(name: str, value: float) -> None:
+    if not (_is_real(value) and math.isfinite(value) and value > 0.0):
+        raise ValueError(f"{name} must be a finite number > 0, got {value!r}")
+
+
+def _require_non_negative(name: str, value: float) -> None:
+    if not (_is_real(value) and math.isfinite(value) and value >= 0.0):
+        raise ValueError(f"{name} must be a finite number >= 0, got {value!r}")
+
+
+def _finite_vector(name: str, value, size: int) -> np.ndarray:
+    arr = np.asarray(value, dtype=np.float64)
+    if arr.shape != (size,):
+        raise ValueError(f"{name} must have shape ({size},), got {arr.shape}")
+    if not np.all(np.isfinite(arr)):
+        raise ValueError(f"{name} must be finite, got {arr.tolist()}")
+    return arr
+
+
+@dataclass(frozen=True)
+class NeedleShape:
+    """Geometry and mass parameters of a curved needle and the holder gripping it (SI units).
+
+    Defaults describe a 3-0 taper needle of the common 26 mm half-circle type: arc length 26 mm
+    (curvature radius 26 mm / pi = 8.3 mm), wire diameter 0.6 mm, stainless steel 7850 kg/m^3, held by a
+    holder whose jaws plus haptic stylus add an effective 20 g and 1e-6 kg m^2 at the grip point.
+    """
+
+    #: Arc the needle spans: a preset name from :data:`ARC_PRESETS` ("1/4", "3/8", "1/2", "5/8") or an angle
+    #: in radians in (0, 2 pi].
+    arc: str | float = "1/2"
+    #: Radius of the needle's circle (centreline), m.
+    curvature_radius: float = 0.026 / math.pi
+    #: Radius of the wire cross-section, m; must be smaller than ``curvature_radius``.
+    wire_radius: float = 3.0e-4
+    #: Density of the needle wire, kg/m^3 (stainless steel).
+    density: float = 7850.0
+    #: Effective mass of the holder jaws / haptic device, a point mass at the grip point, kg (0 = bare needle).
+    holder_mass: float = 0.02
+    #: Effective rotational inertia of the holder about the grip point, isotropic, kg m^2 (0 = none).
+    holder_inertia: float = 1.0e-6
+    #: Where the holder grasps: fraction of the arc length measured from the swage end, in [0, 1].
+    grip_fraction: float = 1.0 / 3.0
+    #: Number of collision/coupling nodes along the arc (node 0 = tip), >= 2.
+    node_count: int = 30
+
+    def __post_init__(self) -> None:
+        if isinstance(self.arc, str):
+            if self.arc not in ARC_PRESETS:
+                raise ValueError(f"arc preset {self.arc!r} unknown; expected one of {sorted(ARC_PRESETS)} or radians")
+        elif not (_is_real(self.arc) and math.isfinite(self.arc) and 0.0 < self.arc <= 2.0 * math.pi):
+            raise ValueError(f"arc must be a preset name or an angle in (0, 2 pi] rad, got {self.arc!r}")
+        _require_positive("curvature_radius", self.curvature_radius)
+        _require_positive("wire_radius", self.wire_radius)
+        if self.wire_radius >= self.curvature_radius:
+            raise ValueError(
+                f"wire_radius ({self.wire_radius}) must be smaller than curvature_radius ({self.curvature_radius})"
+            )
+        _require_positive("density", self.density)
+        _require_non_negative("holder_mass", self.holder_mass)
+        _require_non_negative("holder_inertia", self.holder_inertia)
+        if not (_is_real(self.grip_fraction) and 0.0 <= self.grip_fraction <= 1.0):
+            raise ValueError(f"grip_fraction must be in [0, 1], got {self.grip_fraction!r}")
+        if isinstance(self.node_count, bool) or not isinstance(self.node_count, numbers.Integral):
+            raise ValueError(f"node_count must be an integer >= 2, got {self.node_count!r}")
+        if self.node_count < 2:
+            raise ValueError(f"node_count must be >= 2, got {self.node_count}")
+
+    @property
+    def arc_angle(self) -> float:
+        """Angle the arc spans, rad."""
+        return ARC_PRESETS[self.arc] if isinstance(self.arc, str) else float(self.arc)
+
+    @property
+    def tip_angle(self) -> float:
+        """Polar angle of the tip in the shape frame, rad."""
+        return 0.5 * math.pi - 0.5 * self.arc_angle
+
+    @property
+    def swage_angle(self) -> float:
+        """Polar angle of the swage end in the shape frame, rad."""
+        return 0.5 * math.pi + 0.5 * self.arc_angle
+
+    @property
+    def grip_angle(self) -> float:
+        """Polar angle of the grip point in the shape frame, rad."""
+        return self.swage_angle - self.grip_fraction * self.arc_angle
+
+
+def arc_wire_mass_properties(
+    curvature_radius: float, wire_radius: float, angle_start: float, angle_end: float, density: float
+) -> tuple[float, np.ndarray, np.ndarray]:
+    """Exact mass properties of a round wire bent along a circular arc (a torus sector).
+
+    The centreline is the circle of radius ``curvature_radius`` (m) about the origin in the z = 0 plane, from
+    polar angle ``angle_start`` to ``angle_end`` (rad, ``angle_end > angle_start``); the wire has radius
+    ``wire_radius`` (m) and ``density`` (kg/m^3). The cross-section terms are kept (a wire point at in-plane
+    offset u and out-of-plane offset w from the centreline has volume element (R + u) du dw dphi).
+
+    Returns ``(mass kg, com (3,) m, inertia (3, 3) kg m^2 about the centre of mass)`` in that frame.
+    """
+    R, a, rho = curvature_radius, wire_radius, density
+    d = angle_end - angle_start
+    area = math.pi * a * a
+    mass = rho * area * R * d
+    # integral over the disc of (R+u)^2 and (R+u)^3; integral of w^2 (R+u)
+    m2 = rho * area * (R * R + 0.25 * a * a)
+    m3 = rho * area * (R**3 + 0.75 * R * a * a)
+    mw = rho * R * math.pi * a**4 / 4.0
+    s0, s1 = math.sin(angle_start), math.sin(angle_end)
+    c0, c1 = math.cos(angle_start), math.cos(angle_end)
+    com = np.array([m2 * (s1 - s0), m2 * (c0 - c1), 0.0]) / mass
+    cos2 = 0.5 * d + 0.25 * (math.sin(2.0 * angle_end) - math.sin(2.0 * angle_start))
+    sin2 = 0.5 * d - 0.25 * (math.sin(2.0 * angle_end) - math.sin(2.0 * angle_start))
+    sincos = 0.5 * (s1 * s1 - s0 * s0)
+    second = np.array(
+        [[m3 * cos2, m3 * sincos, 0.0], [m3 * sincos, m3 * sin2, 0.0], [0.0, 0.0, mw * d]]
+    )  # integral of rho x x^T over the volume, about the origin
+    inertia_origin = np.trace(second) * np.eye(3) - second
+    inertia_com = inertia_origin - mass * (com @ com * np.eye(3) - np.outer(com, com))
+    return mass, com, inertia_com
+
+
+@dataclass(frozen=True)
+class NeedleModel:
+    """Static, derived data of a needle + holder rigid body (see the module docstring for the frames).
+
+    Build with :meth:`NeedleModel.from_shape`. Arrays must be treated as read-only.
+    """
+
+    #: The parameters this model was built from.
+    shape: NeedleShape
+    #: Total mass of needle wire and holder, kg.
+    body_mass: float
+    #: 1 / body_mass, 1/kg.
+    body_inv_mass: float
+    #: (3, 3) float64, inertia tensor about the centre of mass in the body frame, kg m^2.
+    body_inertia: np.ndarray
+    #: (3, 3) float64, inverse of ``body_inertia``, 1/(kg m^2).
+    body_inv_inertia: np.ndarray
+    #: Mass of the needle wire alone, kg.
+    wire_mass: float
+    #: (N, 3) float64, arc nodes in the body frame, m; row 0 is the tip, row N-1 the swage end.
+    node_pos_body: np.ndarray
+    #: (3,) float64, grip point (where the wrench acts and the holder mass sits), body frame, m.
+    grip_pos_body: np.ndarray
+    #: (3,) float64, centre of the needle's circle, body frame, m.
+    arc_center_body: np.ndarray
+    #: (3,) float64, unit normal of the needle's plane, body frame (the needle drives tip-first about -normal).
+    plane_normal_body: np.ndarray
+    #: (3,) float64, unit tangent at the tip pointing the way the tip travels, body frame.
+    tip_dir_body: np.ndarray
+    #: Linear velocity damping rate, 1/s (v <- v / (1 + dt * rate) each substep, before forces act).
+    linear_damping: float = 0.0
+    #: Angular velocity damping rate, 1/s.
+    angular_damping: float = 0.0
+    #: If true, gravity does not act on the needle body (the haptic device compensates its weight).
+    gravity_compensation: bool = False
+
+    @property
+    def node_count(self) -> int:
+        """Number of arc nodes."""
+        return self.node_pos_body.shape[0]
+
+    @property
+    def tip_pos_body(self) -> np.ndarray:
+        """(3,) tip (node 0) in the body frame, m."""
+        return self.node_pos_body[0]
+
+    @property
+    def swage_pos_body(self) -> np.ndarray:
+        """(3,) swage end (last node, where the suture attaches) in the body frame, m."""
+        return self.node_pos_body[-1]
+
+    @classmethod
+    def from_shape(
+        cls,
+        shape: NeedleShape | None = None,
+        *,
+        linear_damping: float = 0.0,
+        angular_damping: float = 0.0,
+        gravity_compensation: bool = False,
+    ) -> NeedleModel:
+        """Compute mass, centre of mass, inertia and nodes of ``shape`` (default :class:`NeedleShape`)."""
+        shape = NeedleShape() if shape is None else shape
+        _require_non_negative("linear_damping", linear_damping)
+        _require_non_negative("angular_damping", angular_damping)
+        R = shape.curvature_radius
+        wire_mass, wire_com, wire_inertia = arc_wire_mass_properties(
+            R, shape.wire_radius, shape.tip_angle, shape.swage_angle, shape.density
+        )
+        g_ang = shape.grip_angle
+        grip = np.array([R * math.cos(g_ang), R * math.sin(g_ang), 0.0])
+        mass = wire_mass + shape.holder_mass
+        com = (wire_mass * wire_com + shape.holder_mass * grip) / mass
+
+        def shifted(m: float, c: np.ndarray) -> np.ndarray:
+            d = c - com
+            return m * (d @ d * np.eye(3) - np.outer(d, d))
+
+        inertia = (
+            wire_inertia
+            + shifted(wire_mass, wire_com)
+            + shape.holder_inertia * np.eye(3)
+            + shifted(shape.holder_mass, grip)
+        )
+        inertia = 0.5 * (inertia + inertia.T)
+        angles = shape.tip_angle + shape.arc_angle * np.arange(shape.node_count) / (shape.node_count - 1)
+        nodes = np.stack([R * np.cos(angles), R * np.sin(angles), np.zeros_like(angles)], axis=1)
+        tip = shape.tip_angle
+        tip_dir = np.array([math.sin(tip), -math.cos(tip), 0.0])
+        inv_inertia = np.linalg.inv(inertia)
+        return cls(
+            shape=shape,
+            body_mass=float(mass),
+            body_inv_mass=float(1.0 / mass),
+            body_inertia=inertia,
+            body_inv_inertia=0.5 * (inv_inertia + inv_inertia.T),
+            wire_mass=float(wire_mass),
+            node_pos_body=nodes - com,
+            grip_pos_body=grip - com,
+            arc_center_body=-com,
+            plane_normal_body=np.array([0.0, 0.0, 1.0]),
+            tip_dir_body=tip_dir,
+            linear_damping=float(linear_damping),
+            angular_damping=float(angular_damping),
+            gravity_compensation=bool(gravity_compensation),
+        )
+
+
+@dataclass
+class NeedleState:
+    """Time-varying state of the needle body (world frame, SI units)."""
+
+    #: (3,) float64, centre-of-mass position, m.
+    body_pos: np.ndarray
+    #: (4,) float64, unit orientation quaternion (w, x, y, z), body to world.
+    body_quat: np.ndarray
+    #: (3,) float64, centre-of-mass velocity, m/s.
+    body_vel: np.ndarray = field(default_factory=lambda: np.zeros(3))
+    #: (3,) float64, angular velocity, world frame, rad/s.
+    body_omega: np.ndarray = field(default_factory=lambda: np.zeros(3))
+    #: (3,) float64, position at the start of the current substep, m.
+    body_pos_prev: np.ndarray = field(default_factory=lambda: np.zeros(3))
+    #: (4,) float64, orientation at the start of the current substep.
+    body_quat_prev: np.ndarray = field(default_factory=lambda: np.array([1.0, 0.0, 0.0, 0.0]))
+    #: (3,) float64, predicted position before constraint projection this substep, m.
+    body_pos_pred: np.ndarray = field(default_factory=lambda: np.zeros(3))
+    #: (4,) float64, predicted orientation before constraint projection this substep.
+    body_quat_pred: np.ndarray = field(default_factory=lambda: np.array([1.0, 0.0, 0.0, 0.0]))
+
+    @classmethod
+    def at_rest(cls, body_pos, body_quat) -> NeedleState:
+        """A needle at rest with its centre of mass at ``body_pos`` (3,) m and orientation ``body_quat`` (4,)."""
+        pos = _finite_vector("body_pos", body_pos, 3).copy()
+        quat = _finite_vector("body_quat", body_quat, 4)
+        if np.linalg.norm(quat) == 0.0:
+            raise ValueError("body_quat must be non-zero")
+        quat = quat_normalize(quat)
+        return cls(pos, quat, np.zeros(3), np.zeros(3), pos.copy(), quat.copy(), pos.copy(), quat.copy())
+
+    @classmethod
+    def from_grip_pose(cls, model: NeedleModel, grip_pos, body_quat) -> NeedleState:
+        """A needle at rest whose grip point is at ``grip_pos`` (3,) m with orientation ``body_quat`` (4,)."""
+        grip = _finite_vector("grip_pos", grip_pos, 3)
+        quat = quat_normalize(_finite_vector("body_quat", body_quat, 4))
+        return cls.at_rest(grip - quat_rotate(quat, model.grip_pos_body), quat)
+
+    def copy(self) -> NeedleState:
+        """Deep copy (no array is shared)."""
+        return NeedleState(*(np.array(getattr(self, f)) for f in self.__dataclass_fields__))
+
+
+# ---------------------------------------------------------------------------------------------------------
+# Kernels
+# ---------------------------------------------------------------------------------------------------------
+
+
+@njit(cache=True)
+def world_inv_inertia(quat, inv_inertia_body):
+    """World-frame inverse inertia ``R I_body^-1 R^T`` (3, 3) of a body with orientation ``quat`` (4,)."""
+    r = quat_to_matrix(quat)
+    return r @ inv_inertia_body @ r.T
+
+
+@njit(cache=True)
+def point_inv_mass(inv_mass, inv_inertia_world, r, n):
+    """Generalised inverse mass (1/kg) of a body point for a correction along unit direction ``n`` (3,).
+
+    ``w = 1/m + (r x n)^T I^-1 (r x n)`` with ``r`` (3,) the point relative to the centre of mass (world, m)
+    and ``I^-1`` the world inverse inertia (3, 3) (Muller et al. 2020).
+    """
+    rn = np.cross(r, n)
+    return inv_mass + rn @ (inv_inertia_world @ rn)
+
+
+@njit(cache=True)
+def point_inv_mass_matrix(inv_mass, inv_inertia_world, r):
+    """Generalised inverse mass matrix (3, 3) (1/kg) of a body point: ``K = I/m - [r]x I^-1 [r]x``.
+
+    ``n^T K n`` equals :func:`point_inv_mass` for any unit ``n``; a point impulse ``p`` moves the point by
+    ``K p`` to first order.
+    """
+    s = np.zeros((3, 3))
+    s[0, 1] = -r[2]
+    s[0, 2] = r[1]
+    s[1, 0] = r[2]
+    s[1, 2] = -r[0]
+    s[2, 0] = -r[1]
+    s[2, 1] = r[0]
+    k = -(s @ inv_inertia_world @ s)
+    for i in range(3):
+        k[i, i] += inv_mass
+    return k
+
+
+@njit(cache=True)
+def apply_point_impulse(pos, quat, inv_mass, inv_inertia_world, r, p):
+    """Rigid XPBD pose update for a positional impulse ``p`` (3,) (kg m) at body point ``r`` (3,) (world, m).
+
+    ``x += p / m`` and the orientation turns by ``I^-1 (r x p)`` (rad), applied with the exact exponential
+    map (Muller et al. 2020 linearise this quaternion update) and renormalised. Returns ``(pos (3,), quat (4,))``.
+    """
+    new_pos = pos + inv_mass * p
+    dtheta = inv_inertia_world @ np.cross(r, p)
+    new_quat = quat_normalize(quat_mul(quat_from_rotation_vector(dtheta), quat))
+    return new_pos, new_quat
+
+
+@njit(cache=True)
+def rigid_predict(
+    pos, quat, vel, omega, inv_mass, inertia_body, inv_inertia_body, force, torque, accel, lin_damp, ang_damp, dt
+):
+    """Semi-implicit Newton-Euler step of a rigid body (prediction step of Muller et al. 2020).
+
+    Inputs: pose ``pos`` (3,) m, ``quat`` (4,); velocities ``vel`` (3,) m/s, ``omega`` (3,) rad/s (world);
+    ``inv_mass`` 1/kg; body-frame ``inertia_body`` and ``inv_inertia_body`` (3, 3); world ``force`` (3,) N
+    and ``torque`` (3,) N m about the centre of mass; uniform field ``accel`` (3,) m/s^2 (gravity);
+    damping rates ``lin_damp``, ``ang_damp`` 1/s; ``dt`` s.
+
+    ``v <- v / (1 + dt c) + dt (F/m + g)``, ``x <- x + dt v``; in the body frame
+    ``w <- w / (1 + dt c_w) + dt I^-1 (tau - w x I w)`` (gyroscopic term explicit), ``q <- exp(dt w / 2) q``.
+    Damping acts on the old velocities only, so it never scales the applied loads.
+    Returns ``(pos, quat, vel, omega)``.
+    """
+    new_vel = vel / (1.0 + dt * lin_damp) + dt * (inv_mass * force + accel)
+    new_pos = pos + dt * new_vel
+    w_b = quat_rotate_inv(quat, omega)
+    tau_b = quat_rotate_inv(quat, torque)
+    gyro = np.cross(w_b, inertia_body @ w_b)
+    w_b = w_b / (1.0 + dt * ang_damp) + dt * (inv_inertia_body @ (tau_b - gyro))
+    new_omega = quat_rotate(quat, w_b)
+    new_quat = quat_normalize(quat_mul(quat_from_rotation_vector(dt * new_omega), quat))
+    return new_pos, new_quat, new_vel, new_omega
+
+
+@njit(cache=True)
+def rigid_velocities(pos, quat, pos_prev, quat_prev, dt):
+    """Velocities from the substep's pose change: ``v = dx/dt``, ``omega = log(q conj(q_prev)) / dt``.
+
+    Returns ``(vel (3,) m/s, omega (3,) rad/s world)``.
+    """
+    vel = (pos - pos_prev) / dt
+    omega = quat_rotation_vector(quat_mul(quat, quat_conj(quat_prev))) / dt
+    return vel, omega
+
+
+@njit(cache=True)
+def body_points_world(pos, quat, points_body, out):
+    """World positions of body-frame points ``points_body`` (K, 3) for pose (``pos`` (3,), ``quat`` (4,)).
+
+    Writes ``out`` (K, 3) m.
+    """
+    r = quat_to_matrix(quat)
+    for k in range(points_body.shape[0]):
+        for i in range(3):
+            out[k, i] = pos[i] + r[i, 0] * points_body[k, 0] + r[i, 1] * points_body[k, 1] + r[i, 2] * points_body[k, 2]
+
+
+# ---------------------------------------------------------------------------------------------------------
+# Phase API
+# ---------------------------------------------------------------------------------------------------------
+
+
+def check_wrench(wrench) -> np.ndarray:
+    """Return ``wrench`` as a (6,) float64 array ``[force N, torque N m]``; ValueError if malformed/non-finite."""
+    arr = np.asarray(wrench, dtype=np.float64)
+    if arr.shape != (6,):
+        raise ValueError(f"needle_wrench must have shape (6,) = [force (3) N, torque (3) N m], got {arr.shape}")
+    if not np.all(np.isfinite(arr)):
+        raise ValueError(f"needle_wrench must be finite, got {arr.tolist()}")
+    return arr
+
+
+def grip_offset_world(model: NeedleModel, state: NeedleState) -> np.ndarray:
+    """(3,) vector from the centre of mass to the grip point, world frame, m."""
+    return quat_rotate(state.body_quat, model.grip_pos_body)
+
+
+def wrench_at_com(model: NeedleModel, state: NeedleState, wrench) -> tuple[np.ndarray, np.ndarray]:
+    """Convert a grip-point wrench (6,) to ``(force (3,) N, torque about the centre of mass (3,) N m)``.
+
+    ``tau_com = tau_grip + r_grip x F`` with ``r_grip`` the world offset from the centre of mass to the grip.
+    """
+    w = check_wrench(wrench)
+    force = w[:3].copy()
+    return force, w[3:] + np.cross(grip_offset_world(model, state), force)
+
+
+def needle_predict(model: NeedleModel, state: NeedleState, wrench, dt: float, gravity) -> None:
+    """Predict phase: store the start pose, integrate the grip-point ``wrench`` (6,) over ``dt`` (s).
+
+    ``gravity`` (3,) m/s^2 acts unless ``model.gravity_compensation``. Updates ``state`` in place and records
+    the predicted pose in ``body_pos_pred`` / ``body_quat_pred`` (used by :func:`needle_constraint_wrench`).
+    """
+    _require_positive("dt", dt)
+    g = _finite_vector("gravity", gravity, 3)
+    force, torque = wrench_at_com(model, state, wrench)
+    accel = np.zeros(3) if model.gravity_compensation else g
+    state.body_pos_prev[:] = state.body_pos
+    state.body_quat_prev[:] = state.body_quat
+    pos, quat, vel, omega = rigid_predict(
+        state.body_pos,
+        state.body_quat,
+        state.body_vel,
+        state.body_omega,
+        model.body_inv_mass,
+        model.body_inertia,
+        model.body_inv_inertia,
+        force,
+        torque,
+        accel,
+        model.linear_damping,
+        model.angular_damping,
+        dt,
+    )
+    state.body_pos[:] = pos
+    state.body_quat[:] = quat
+    state.body_vel[:] = vel
+    state.body_omega[:] = omega
+    state.body_pos_pred[:] = pos
+    state.body_quat_pred[:] = quat
+
+
+def needle_update_velocities(state: NeedleState, dt: float) -> None:
+    """Velocity phase: ``v = (x - x_prev) / dt`` and ``omega`` from the orientation change, in place."""
+    vel, omega = rigid_velocities(state.body_pos, state.body_quat, state.body_pos_prev, state.body_quat_prev, dt)
+    state.body_vel[:] = vel
+    state.body_omega[:] = omega
+
+
+def needle_constraint_wrench(model: NeedleModel, state: NeedleState, dt: float) -> np.ndarray:
+    """Wrench (6,) ``[force N, torque about the grip point N m]`` the constraints exerted on the needle.
+
+    From the projection's pose change this substep: ``F = m (x - x_pred) / dt^2`` and
+    ``tau_com = I_world dtheta / dt^2`` with ``dtheta = log(q conj(q_pred))``. This is the haptic reaction;
+    the device feels its opposite.
+    """
+    force = model.body_mass * (state.body_pos - state.body_pos_pred) / (dt * dt)
+    dtheta = quat_rotation_vector(quat_mul(state.body_quat, quat_conj(state.body_quat_pred)))
+    r = quat_to_matrix(state.body_quat)
+    torque_com = r @ model.body_inertia @ r.T @ dtheta / (dt * dt)
+    return np.concatenate([force, torque_com - np.cross(grip_offset_world(model, state), force)])
+
+
+def needle_node_positions(model: NeedleModel, state: NeedleState, out: np.ndarray | None = None) -> np.ndarray:
+    """World positions (N, 3) m of the arc nodes (row 0 = tip, last = swage); written into ``out`` if given."""
+    if out is None:
+        out = np.empty_like(model.node_pos_body)
+    body_points_world(state.body_pos, state.body_quat, model.node_pos_body, out)
+    return out
+
+
+def needle_point_world(model: NeedleModel, state: NeedleState, point_body) -> np.ndarray:
+    """World position (3,) m of a body-frame point ``point_body`` (3,)."""
+    return state.body_pos + quat_rotate(state.body_quat, np.asarray(point_body, dtype=np.float64))
+
+
+def needle_point_velocity(model: NeedleModel, state: NeedleState, point_body) -> np.ndarray:
+    """World velocity (3,) m/s of a body-frame point: ``v + omega x r``."""
+    r = quat_rotate(state.body_quat, np.asarray(point_body, dtype=np.float64))
+    return state.body_vel + np.cross(state.body_omega, r)
+
+
+def needle_point_inv_mass(model: NeedleModel, state: NeedleState, point_world, direction) -> float:
+    """Generalised inverse mass (1/kg) of world point ``point_world`` (3,) on the needle along ``direction``."""
+    n = _finite_vector("direction", direction, 3)
+    norm = np.linalg.norm(n)
+    if norm == 0.0:
+        raise ValueError("direction must be non-zero")
+    r = _finite_vector("point_world", point_world, 3) - state.body_pos
+    return float(
+        point_inv_mass(model.body_inv_mass, world_inv_inertia(state.body_quat, model.body_inv_inertia), r, n / norm)
+    )
+
+
+def needle_apply_impulse(model: NeedleModel, state: NeedleState, point_world, impulse) -> None:
+    """Apply a positional impulse ``impulse`` (3,) kg m at world point ``point_world`` (3,) to the pose, in place.
+
+    This is how contact and path constraints on needle nodes act on the rigid body: a constraint with
+    gradient ``n`` at the node and multiplier step ``dlambda`` passes ``impulse = dlambda n``.
+    """
+    p = _finite_vector("impulse", impulse, 3)
+    r = _finite_vector("point_world", point_world, 3) - state.body_pos
+    pos, quat = apply_point_impulse(
+        state.body_pos,
+        state.body_quat,
+        model.body_inv_mass,
+        world_inv_inertia(state.body_quat, model.body_inv_inertia),
+        r,
+        p,
+    )
+    state.body_pos[:] = pos
+    state.body_quat[:] = quat
+
+
+def needle_move_point(model: NeedleModel, state: NeedleState, point_world, displacement) -> None:
+    """Rigid XPBD projection moving body point ``point_world`` (3,) by ``displacement`` (3,) m, other side static.
+
+    The three rows ``C = x_point - x_target`` are solved together: impulse ``p = K^-1 dx`` with ``K`` the
+    point's generalised inverse mass matrix (:func:`point_inv_mass_matrix`), so the point moves by
+    ``displacement`` up to second order in the rotation. A zero displacement does nothing.
+    """
+    dx = _finite_vector("displacement", displacement, 3)
+    if not np.any(dx):
+        return
+    point = _finite_vector("point_world", point_world, 3)
+    k = point_inv_mass_matrix(
+        model.body_inv_mass, world_inv_inertia(state.body_quat, model.body_inv_inertia), point - state.body_pos
+    )
+    needle_apply_impulse(model, state, point, np.linalg.solve(k, dx))
+
+
+@dataclass(frozen=True)
+class VirtualCoupling:
+    """Spring-damper between a target grip pose (the haptic device) and the needle's grip point.
+
+    ``F = k (x_target - x_grip) + c (v_target - v_grip)``,
+    ``tau = k_w log(q_target conj(q)) + c_w (omega_target - omega)`` (about the grip point).
+    The defaults are near critically damped (damping ratio ~0.95) at ~160 rad/s for the default needle
+    (mass 20 g, inertia ~1e-6 kg m^2); the semi-implicit step keeps ``omega_n dt`` well below 1 for dt <= 2 ms.
+    """
+
+    #: Translational stiffness, N/m.
+    linear_stiffness: float = 500.0
+    #: Translational damping, N s/m.
+    linear_damping: float = 6.0
+    #: Rotational stiffness, N m/rad.
+    angular_stiffness: float = 0.025
+    #: Rotational damping, N m s/rad.
+    angular_damping: float = 3.0e-4
+
+    def __post_init__(self) -> None:
+        for name in ("linear_stiffness", "linear_damping", "angular_stiffness", "angular_damping"):
+            _require_non_negative(name, getattr(self, name))
+
+    def wrench(
+        self,
+        model: NeedleModel,
+        state: NeedleState,
+        target_pos,
+        target_quat,
+        target_vel=(0.0, 0.0, 0.0),
+        target_omega=(0.0, 0.0, 0.0),
+    ) -> np.ndarray:
+        """Grip-point wrench (6,) ``[force N, torque N m]`` pulling the needle toward the target grip pose.
+
+        ``target_pos`` (3,) m is where the grip point should be, ``target_quat`` (4,) the body orientation,
+        ``target_vel`` (3,) m/s and ``target_omega`` (3,) rad/s the target's velocities.
+        """
+        xt = _finite_vector("target_pos", target_pos, 3)
+        qt = _finite_vector("target_quat", target_quat, 4)
+        vt = _finite_vector("target_vel", target_vel, 3)
+        wt = _finite_vector("target_omega", target_omega, 3)
+        grip = needle_point_world(model, state, model.grip_pos_body)
+        v_grip = needle_point_velocity(model, state, model.grip_pos_body)
+        force = self.linear_stiffness * (xt - grip) + self.linear_damping * (vt - v_grip)
+        err = quat_rotation_vector(quat_mul(quat_normalize(qt), quat_conj(state.body_quat)))
+        torque = self.angular_stiffness * err + self.angular_damping * (wt - state.body_omega)
+        return np.concatenate([force, torque])
