@@ -35,8 +35,9 @@ setup-train: $(VENV)/.train
 run: setup
 	$(PY) scripts/demo_tissue.py
 
-## The test suite (README quick start, command 2; CI runs exactly this).
-test: setup
+## The test suite (README quick start, command 2; CI runs exactly this). Includes the RL extras so the
+## SB3 pipeline and check_env tests run.
+test: setup-train
 	$(PY) -m pytest -q
 
 validate: setup

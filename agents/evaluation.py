@@ -1,0 +1,157 @@
+"""Evaluate a policy on a Gymnasium env id: random, the scripted expert, or a saved SB3 model.
+
+The summary follows DESIGN.md section 6: ``success_rate, mean_return, mean_episode_length, mean_tip_force,
+mean_final_gap`` (plus spreads and the per-episode records). ``tip_force`` (N) and ``wound_gap`` (m) are read
+from the env's ``info``; envs that do not report them give ``None``.
+"""
+
+from __future__ import annotations
+
+import math
+from collections.abc import Callable
+from dataclasses import asdict, dataclass
+from pathlib import Path
+
+import gymnasium as gym
+import numpy as np
+
+
+@dataclass
+class Episode:
+    """One evaluated episode: return, length (env steps), success, mean |tip force| (N), final gap (m)."""
+
+    seed: int
+    episode_return: float
+    length: int
+    success: bool
+    mean_tip_force: float
+    final_gap: float
+    truncated: bool
+    diverged: bool
+
+
+def make_policy(policy: str, env: gym.Env, seed: int) -> Callable[[object], np.ndarray]:
+    """A callable ``obs -> action`` for ``policy``: ``random``, ``expert`` or a path to an SB3 ``.zip``."""
+    if policy == "random":
+        space = env.action_space
+        space.seed(seed)
+        return lambda obs: space.sample()
+    if policy == "expert":
+        from agents.expert import ExpertPolicy
+
+        return ExpertPolicy(env)
+    return _saved_model_policy(Path(policy))
+
+
+def _saved_model_policy(path: Path) -> Callable[[object], np.ndarray]:
+    import yaml
+
+    from agents.training import ALGOS, algo_class
+
+    if not path.exists():
+        raise FileNotFoundError(f"policy {str(path)!r} is neither 'random', 'expert' nor an existing model file")
+    config_path = path.parent / "config.yaml"
+    algo = None
+    if config_path.exists():
+        algo = yaml.safe_load(config_path.read_text()).get("algo")
+    candidates = [algo] if algo else list(ALGOS)
+    model = None
+    for name in candidates:
+        try:
+            model = algo_class(name).load(path, device="cpu")
+            break
+        except (ValueError, KeyError, RuntimeError, TypeError):
+            continue
+    if model is None:
+        raise ValueError(f"{str(path)!r} is not a model of any of {candidates}")
+    normalizer = None
+    stats = path.parent / "final_vecnormalize.pkl"
+    if stats.exists():
+        import pickle
+
+        with open(stats, "rb") as fh:
+            normalizer = pickle.load(fh)
+
+    def act(obs):
+        if normalizer is not None:
+            obs = normalizer.normalize_obs(obs)
+        action, _ = model.predict(obs, deterministic=True)
+        return action
+
+    return act
+
+
+def evaluate(
+    env_id: str,
+    policy: str,
+    episodes: int,
+    seed: int = 0,
+    env_kwargs: dict | None = None,
+    progress: bool = False,
+) -> dict:
+    """Run ``episodes`` episodes (env seeds ``seed, seed + 1, ...``) and summarise them.
+
+    Returns:
+        ``{env_id, policy, episodes, seed, success_rate, success_rate_stderr, mean_return, std_return,
+        mean_episode_length, mean_tip_force, mean_final_gap, diverged_episodes, per_episode}``.
+    """
+    import suture_gym  # noqa: F401  (registers the SutureGym ids)
+
+    if episodes <= 0:
+        raise ValueError(f"episodes must be positive, got {episodes}")
+    env = gym.make(env_id, **(env_kwargs or {}))
+    act = make_policy(policy, env, seed)
+    records: list[Episode] = []
+    iterator = range(episodes)
+    if progress:
+        from tqdm import tqdm
+
+        iterator = tqdm(iterator, desc=f"evaluate {policy}", unit="episode")
+    for k in iterator:
+        obs, info = env.reset(seed=seed + k)
+        if hasattr(act, "reset"):
+            act.reset()
+        total, length, forces, done = 0.0, 0, [], False
+        terminated = truncated = False
+        while not done:
+            obs, reward, terminated, truncated, info = env.step(act(obs))
+            total += float(reward)
+            length += 1
+            if "tip_force" in info:
+                forces.append(abs(float(info["tip_force"])))
+            done = terminated or truncated
+        records.append(
+            Episode(
+                seed=seed + k,
+                episode_return=total,
+                length=length,
+                success=bool(info.get("is_success", False)),
+                mean_tip_force=float(np.mean(forces)) if forces else math.nan,
+                final_gap=float(info.get("wound_gap", math.nan)),
+                truncated=bool(truncated),
+                diverged=bool(info.get("diverged", False)),
+            )
+        )
+    env.close()
+    successes = np.array([r.success for r in records], dtype=float)
+    returns = np.array([r.episode_return for r in records])
+    return {
+        "env_id": env_id,
+        "policy": policy,
+        "episodes": episodes,
+        "seed": seed,
+        "success_rate": float(successes.mean()),
+        "success_rate_stderr": float(successes.std(ddof=1) / math.sqrt(episodes)) if episodes > 1 else None,
+        "mean_return": float(returns.mean()),
+        "std_return": float(returns.std()),
+        "mean_episode_length": float(np.mean([r.length for r in records])),
+        "mean_tip_force": _nanmean([r.mean_tip_force for r in records]),
+        "mean_final_gap": _nanmean([r.final_gap for r in records]),
+        "diverged_episodes": int(sum(r.diverged for r in records)),
+        "per_episode": [asdict(r) for r in records],
+    }
+
+
+def _nanmean(values: list[float]) -> float | None:
+    finite = [v for v in values if math.isfinite(v)]
+    return float(np.mean(finite)) if finite else None

@@ -1,0 +1,99 @@
+"""rl-zoo-style agent configuration: ``configs/agents/<algo>.yml``, one top-level key per env id.
+
+Conventions (as in rl-baselines3-zoo, without its ``eval()``):
+
+- ``n_timesteps`` (int, env steps), ``policy`` (SB3 policy name), ``n_envs`` (int), ``normalize`` (bool or
+  a mapping of ``VecNormalize`` keyword arguments), and any keyword argument of the algorithm's constructor.
+- Schedules are strings ``lin_<value>`` (linear decay from ``value`` to 0 over training).
+- ``policy_kwargs`` is a mapping; ``activation_fn`` names a torch module (``tanh``, ``relu``, ``elu``,
+  ``leaky_relu``); ``net_arch`` is a list or a dict ``{pi: [...], vf: [...]}`` / ``{pi: [...], qf: [...]}``.
+- ``replay_buffer_class: HerReplayBuffer`` with ``replay_buffer_kwargs`` selects HER for goal-conditioned envs.
+"""
+
+from __future__ import annotations
+
+import copy
+from pathlib import Path
+from typing import Any
+
+import yaml
+
+ROOT = Path(__file__).resolve().parents[1]
+CONFIG_DIR = ROOT / "configs" / "agents"
+
+#: Keys consumed by the training script rather than passed to the algorithm.
+SCRIPT_KEYS = ("n_timesteps", "policy", "n_envs", "normalize", "env_kwargs")
+
+_ACTIVATIONS = ("tanh", "relu", "elu", "leaky_relu")
+
+
+def algorithms() -> list[str]:
+    """Algorithm names with a config file (``ppo``, ``sac``, ``tqc`` ...)."""
+    return sorted(p.stem for p in CONFIG_DIR.glob("*.yml"))
+
+
+def load_hyperparams(algo: str, env_id: str, config_dir: Path = CONFIG_DIR) -> dict[str, Any]:
+    """The raw hyperparameters of ``algo`` for ``env_id`` (a deep copy of the YAML mapping).
+
+    Raises:
+        ValueError: no config file for ``algo``, or no entry for ``env_id`` in it (the message lists the
+            algorithms / env ids that exist).
+    """
+    path = Path(config_dir) / f"{algo}.yml"
+    if not path.exists():
+        raise ValueError(f"no agent config for algo {algo!r}; known: {algorithms()}")
+    with open(path) as fh:
+        table = yaml.safe_load(fh) or {}
+    if env_id not in table:
+        raise ValueError(f"{path.name} has no entry for env {env_id!r}; it has {sorted(table)}")
+    return copy.deepcopy(table[env_id])
+
+
+def resolve(hyperparams: dict[str, Any]) -> tuple[dict[str, Any], dict[str, Any]]:
+    """Split hyperparameters into (script settings, algorithm keyword arguments) with schedules and
+    policy keyword arguments turned into Python objects. The input is left unchanged.
+    """
+    from stable_baselines3.common.utils import LinearSchedule
+
+    params = copy.deepcopy(hyperparams)
+    script = {key: params.pop(key) for key in SCRIPT_KEYS if key in params}
+    if "policy" not in script:
+        raise ValueError("agent config needs a 'policy' (e.g. MlpPolicy or MultiInputPolicy)")
+    if "n_timesteps" not in script:
+        raise ValueError("agent config needs 'n_timesteps' (total env steps)")
+    for key, value in list(params.items()):
+        if isinstance(value, str) and value.startswith("lin_"):
+            start = _number(value[4:], key)
+            params[key] = LinearSchedule(start, 0.0, 1.0)
+    if "policy_kwargs" in params:
+        params["policy_kwargs"] = _policy_kwargs(params["policy_kwargs"])
+    if "replay_buffer_class" in params:
+        name = params["replay_buffer_class"]
+        if name != "HerReplayBuffer":
+            raise ValueError(f"replay_buffer_class must be 'HerReplayBuffer' if given, got {name!r}")
+        from stable_baselines3 import HerReplayBuffer
+
+        params["replay_buffer_class"] = HerReplayBuffer
+    return script, params
+
+
+def _number(text: str, key: str) -> float:
+    try:
+        return float(text)
+    except ValueError as exc:
+        raise ValueError(f"{key}: schedule 'lin_{text}' needs a number after 'lin_'") from exc
+
+
+def _policy_kwargs(kwargs: Any) -> dict[str, Any]:
+    if not isinstance(kwargs, dict):
+        raise ValueError(f"policy_kwargs must be a mapping (no strings to eval), got {type(kwargs).__name__}")
+    out = dict(kwargs)
+    if "activation_fn" in out:
+        import torch.nn as nn
+
+        name = out["activation_fn"]
+        table = {"tanh": nn.Tanh, "relu": nn.ReLU, "elu": nn.ELU, "leaky_relu": nn.LeakyReLU}
+        if name not in table:
+            raise ValueError(f"policy_kwargs.activation_fn must be one of {_ACTIVATIONS}, got {name!r}")
+        out["activation_fn"] = table[name]
+    return out

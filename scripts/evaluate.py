@@ -1,0 +1,49 @@
+"""Evaluate a policy: random, the scripted expert, or a saved model (DESIGN.md section 6).
+
+Usage::
+
+    python scripts/evaluate.py --env SutureGym/NeedleInsert-v0 --policy random --episodes 20 --json
+    python scripts/evaluate.py --env SutureGym/NeedleInsert-v0 --policy runs/ppo_NeedleInsert_s0/best_model.zip
+
+Prints ``success_rate, mean_return, mean_episode_length, mean_tip_force, mean_final_gap`` (and more; the
+per-episode records with ``--per-episode``).
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import sys
+
+from _common import configure
+
+configure(threads=1)
+
+from agents.evaluation import evaluate  # noqa: E402
+
+
+def main(argv: list[str] | None = None) -> int:
+    parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    parser.add_argument("--env", default="SutureGym/NeedleInsert-v0", help="Gymnasium env id")
+    parser.add_argument("--policy", default="random", help="'random', 'expert' or a path to a model .zip")
+    parser.add_argument("--episodes", type=int, default=20)
+    parser.add_argument("--seed", type=int, default=0, help="episode k uses env seed seed + k")
+    parser.add_argument("--json", action="store_true", help="print JSON")
+    parser.add_argument("--per-episode", action="store_true", help="include per-episode records")
+    args = parser.parse_args(argv)
+    if args.episodes <= 0:
+        parser.error(f"--episodes must be positive, got {args.episodes}")
+
+    summary = evaluate(args.env, args.policy, args.episodes, seed=args.seed, progress=not args.json)
+    if not args.per_episode:
+        summary.pop("per_episode")
+    if args.json:
+        print(json.dumps(summary, indent=2))
+    else:
+        for key, value in summary.items():
+            print(f"{key:22s} {value}")
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())

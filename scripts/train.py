@@ -1,0 +1,66 @@
+"""Train a Stable-Baselines3 baseline on a SutureGym task (rl-zoo-style configs in configs/agents/).
+
+Usage::
+
+    python scripts/train.py --algo ppo --env SutureGym/NeedleInsert-v0 --seed 0
+    python scripts/train.py --algo sac --env SutureGym/NeedleInsert-v0 --n-timesteps 20000
+    python scripts/train.py --algo ppo --env SutureGym/NeedleInsert-v0 \
+        --resume runs/ppo_NeedleInsert_s0/checkpoints/model_50000_steps.zip
+
+Writes runs/<algo>_<Task>_s<seed>/ (config.yaml, TensorBoard logs, checkpoints, evaluations, best and final
+models, learning_curve.png, summary.json); see agents/training.py.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import sys
+
+from _common import configure
+
+configure(threads=1)
+
+from agents.hyperparams import algorithms  # noqa: E402
+from agents.training import train  # noqa: E402
+
+
+def main(argv: list[str] | None = None) -> int:
+    parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    parser.add_argument("--algo", default="ppo", choices=algorithms(), help="algorithm (a configs/agents/*.yml)")
+    parser.add_argument("--env", default="SutureGym/NeedleInsert-v0", help="Gymnasium env id")
+    parser.add_argument("--seed", type=int, default=0)
+    parser.add_argument("--n-timesteps", type=int, default=None, help="override the config's total env steps")
+    parser.add_argument("--out", default="runs", help="parent directory of the run directory")
+    parser.add_argument("--eval-freq", type=int, default=10_000, help="env steps between evaluations (0: none)")
+    parser.add_argument("--eval-episodes", type=int, default=20)
+    parser.add_argument("--checkpoint-freq", type=int, default=50_000, help="env steps between checkpoints")
+    parser.add_argument("--resume", default=None, help="checkpoint .zip to continue from")
+    parser.add_argument("--no-progress", action="store_true", help="hide the progress bar")
+    parser.add_argument("-v", "--verbose", type=int, default=0)
+    args = parser.parse_args(argv)
+    if args.n_timesteps is not None and args.n_timesteps <= 0:
+        parser.error(f"--n-timesteps must be positive, got {args.n_timesteps}")
+
+    result = train(
+        args.algo,
+        args.env,
+        seed=args.seed,
+        out_dir=args.out,
+        n_timesteps=args.n_timesteps,
+        eval_freq=args.eval_freq,
+        eval_episodes=args.eval_episodes,
+        checkpoint_freq=args.checkpoint_freq,
+        resume=args.resume,
+        progress_bar=not args.no_progress,
+        verbose=args.verbose,
+    )
+    print(json.dumps({"run_dir": str(result.run_dir), "model": str(result.model_path),
+                      "timesteps": result.timesteps, "wall_s": round(result.wall_s, 1),
+                      "last_eval_mean_return": result.last_eval_mean_return,
+                      "last_eval_success_rate": result.last_eval_success_rate}, indent=2))
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())
