@@ -8,6 +8,7 @@ import pytest
 
 from suture_gym.sim.mesh import box_tet_grid
 from suture_gym.sim.model import Control, Model, State, TissueMaterial, TissueModel, TissueState
+from suture_gym.sim.needle import NeedleModel, NeedleState
 from suture_gym.sim.scenes import cantilever, compression_block, hanging_bar, paper_cube, two_bar_wound
 from suture_gym.sim.solver import Solver
 
@@ -197,32 +198,26 @@ def test_steps_are_deterministic():
     assert a.time == b.time
 
 
-class _Duck:
-    """Stand-in for a needle or suture state: anything with copy()."""
-
-    def __init__(self, value):
-        self.value = np.array(value, dtype=float)
-
-    def copy(self):
-        return _Duck(self.value.copy())
-
-
 def test_snapshot_restore_is_bit_identical():
-    model, state = _small_scene()
-    state.needle = _Duck([1.0, 2.0])
+    small, _ = _small_scene()
+    needle = NeedleModel.from_shape()
+    model = Model(tissue=small.tissue, needle=needle, gravity=small.gravity)
+    state = State.initial(model, needle=NeedleState.at_rest([0.1, 0.0, 0.1], [1.0, 0.0, 0.0, 0.0]))
     _run(model, state, 5)
     snap = state.snapshot()
     q_array = state.tissue.particle_q
     _run(model, state, 15)
     first = state.snapshot()
-    state.needle.value[:] = -1.0
+    state.needle.body_pos[:] = -1.0
     state.restore(snap)
     assert state.tissue.particle_q is q_array  # restored in place
-    assert np.array_equal(state.needle.value, [1.0, 2.0]) and state.needle is not snap.needle
+    assert np.array_equal(state.needle.body_pos, snap.needle.body_pos) and state.needle is not snap.needle
     _run(model, state, 15)
     for name in ("particle_q", "particle_qd", "particle_q_prev", "tet_multiplier"):
         assert np.array_equal(getattr(state.tissue, name), getattr(first.tissue, name)), name
     assert state.time == first.time
+    assert np.array_equal(state.needle.body_pos, first.needle.body_pos)
+    assert np.array_equal(state.needle.body_quat, first.needle.body_quat)
     # The snapshot is independent of later steps and can be restored twice.
     state.restore(snap)
     assert state.time == snap.time and np.array_equal(state.tissue.particle_q, snap.tissue.particle_q)

@@ -17,6 +17,7 @@ from dataclasses import asdict, dataclass, field
 MODULES: tuple[str, ...] = (
     "suture_gym.measure.tissue",
     "suture_gym.measure.strands",
+    "suture_gym.measure.interaction",
     "suture_gym.measure.collision",
     "suture_gym.measure.render",
 )

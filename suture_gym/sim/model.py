@@ -4,21 +4,23 @@ Field names follow ``<entity>_<quantity>``; every field states its shape, dtype 
 changes during a simulation (its arrays are read-only); the solver advances a State in place; a Control holds
 what the agent commands during one step.
 
-The needle and suture slots (``Model.needle``, ``State.needle``, ...) hold objects defined in
-``sim/needle.py`` and ``sim/rod.py``; this module only requires that state objects have ``copy()`` and
-model objects be treated as immutable.
+The needle, suture and coupling slots hold the objects of :mod:`suture_gym.sim.needle`,
+:mod:`suture_gym.sim.rod` and :mod:`suture_gym.sim.coupling`. Every quantity that influences a later substep
+lives in the State, so :meth:`State.snapshot` / :meth:`State.restore` replay bit for bit.
 """
 
 from __future__ import annotations
 
 import math
 from dataclasses import dataclass, field, fields
-from typing import Any
 
 import numpy as np
 
 from suture_gym.sim.coloring import color_constraints
+from suture_gym.sim.coupling import CouplingModel, CouplingState, CouplingWork
 from suture_gym.sim.mesh import TetMesh, lumped_masses, rest_shape, surface_triangles
+from suture_gym.sim.needle import NeedleModel, NeedleState
+from suture_gym.sim.rod import RodModel, RodState, RodWork
 
 
 @dataclass(frozen=True)
@@ -358,30 +360,71 @@ class TissueState:
             mine[...] = theirs
 
 
+class Scratch:
+    """Buffers the solver reuses every substep for one model (allocated once, by :class:`Model`).
+
+    They carry no information from one substep to the next: the detection rebuilds the coupling rows and the
+    solver loads the rod's warm start from the State before each projection. One model must therefore not be
+    stepped from two threads at once.
+
+    Attributes:
+        rod_work: :class:`~suture_gym.sim.rod.RodWork` of the suture, or None.
+        coupling_work: :class:`~suture_gym.sim.coupling.CouplingWork`, or None.
+        strand_q: ``(M, 3) float64`` strand node positions at detection, m (empty without coupling).
+    """
+
+    def __init__(self, suture: RodModel | None, coupling: CouplingModel | None):
+        self.rod_work = None if suture is None else RodWork(suture)
+        self.coupling_work = None if coupling is None else CouplingWork(coupling)
+        self.strand_q = np.zeros((0 if coupling is None else coupling.strand_node_count, 3))
+
+
 @dataclass(frozen=True)
 class Model:
     """Everything static about a scene.
 
     Attributes:
         tissue: the :class:`TissueModel`, or None for a scene without tissue.
-        needle: the needle model (``sim/needle.py``), or None.
-        suture: the suture rod model (``sim/rod.py``), or None.
+        needle: the :class:`~suture_gym.sim.needle.NeedleModel`, or None.
+        suture: the suture :class:`~suture_gym.sim.rod.RodModel`, or None; with a needle, its node 0 is
+            attached to the needle's swage.
+        coupling: the :class:`~suture_gym.sim.coupling.CouplingModel` of needle + suture with the tissue, or
+            None (needs tissue and needle, built for exactly this needle and suture).
         gravity: ``(3,) float64`` gravitational acceleration, m/s^2 (read-only).
+        scratch: :class:`Scratch` buffers of the solver (not a dataclass field; carries no state).
     """
 
     tissue: TissueModel | None = None
-    needle: Any = None
-    suture: Any = None
+    needle: NeedleModel | None = None
+    suture: RodModel | None = None
+    coupling: CouplingModel | None = None
     gravity: np.ndarray = field(default_factory=lambda: np.array([0.0, 0.0, -9.81]))
 
     def __post_init__(self) -> None:
-        if self.tissue is not None and not isinstance(self.tissue, TissueModel):
-            raise ValueError(f"Model.tissue must be a TissueModel or None, got {type(self.tissue).__name__}")
+        for name, kind in (
+            ("tissue", TissueModel),
+            ("needle", NeedleModel),
+            ("suture", RodModel),
+            ("coupling", CouplingModel),
+        ):
+            value = getattr(self, name)
+            if value is not None and not isinstance(value, kind):
+                raise ValueError(f"Model.{name} must be a {kind.__name__} or None, got {type(value).__name__}")
+        if self.coupling is not None:
+            if self.tissue is None or self.needle is None:
+                raise ValueError("Model.coupling needs Model.tissue and Model.needle")
+            expected = self.needle.node_count + (0 if self.suture is None else self.suture.node_count - 1)
+            if self.coupling.needle_node_count != self.needle.node_count or self.coupling.strand_node_count != expected:
+                raise ValueError(
+                    f"Model.coupling was built for a strand of {self.coupling.strand_node_count} nodes, but needle "
+                    f"and suture make {expected}"
+                )
         gravity = np.array(self.gravity, dtype=np.float64, copy=True)
         if gravity.shape != (3,) or not np.all(np.isfinite(gravity)):
             raise ValueError(f"Model.gravity must be three finite components in m/s^2, got {self.gravity!r}")
         gravity.flags.writeable = False
         object.__setattr__(self, "gravity", gravity)
+        object.__setattr__(self, "scratch", Scratch(self.suture, self.coupling))
 
 
 @dataclass
@@ -390,18 +433,45 @@ class State:
 
     Attributes:
         tissue: the :class:`TissueState`, or None.
-        needle: the needle state (``sim/needle.py``; anything with ``copy()``), or None.
-        suture: the suture rod state (``sim/rod.py``; anything with ``copy()``), or None.
+        needle: the :class:`~suture_gym.sim.needle.NeedleState`, or None.
+        suture: the suture :class:`~suture_gym.sim.rod.RodState`, or None.
+        coupling: the :class:`~suture_gym.sim.coupling.CouplingState`, or None.
+        suture_tension: ``(S-1,) float64`` size of each suture segment's stretch multiplier in the last
+            substep, kg m^2 (the rod solver's geometric-stiffness warm start), or None without a suture.
+        needle_reaction: ``(6,) float64`` wrench the constraints (tissue coupling, suture attachment) exerted on
+            the needle in the last substep: force N, then torque about the grip point N m (the haptic
+            reaction; the device feels its opposite), or None without a needle.
         time: simulated time, s.
         diverged: set by the solver when positions become non-finite or speeds absurd; the solver leaves a
             diverged state untouched from then on.
     """
 
     tissue: TissueState | None = None
-    needle: Any = None
-    suture: Any = None
+    needle: NeedleState | None = None
+    suture: RodState | None = None
+    coupling: CouplingState | None = None
+    suture_tension: np.ndarray | None = None
+    needle_reaction: np.ndarray | None = None
     time: float = 0.0
     diverged: bool = False
+
+    @classmethod
+    def initial(cls, model: Model, needle: NeedleState | None = None, suture: RodState | None = None) -> State:
+        """A state at rest for ``model``: tissue in its rest shape, the given needle and suture states, an
+        empty coupling state and zero warm starts and readings. A needle (suture) state is required iff the
+        model has a needle (suture)."""
+        if (model.needle is None) != (needle is None):
+            raise ValueError("State.initial needs a needle state exactly when the model has a needle")
+        if (model.suture is None) != (suture is None):
+            raise ValueError("State.initial needs a suture state exactly when the model has a suture")
+        return cls(
+            tissue=None if model.tissue is None else TissueState.at_rest(model.tissue),
+            needle=needle,
+            suture=suture,
+            coupling=None if model.coupling is None else CouplingState.empty(model.coupling),
+            suture_tension=None if model.suture is None else np.zeros(model.suture.node_count - 1),
+            needle_reaction=None if model.needle is None else np.zeros(6),
+        )
 
     def snapshot(self) -> State:
         """Deep copy of the whole state (restore it with :meth:`restore`)."""
@@ -409,6 +479,9 @@ class State:
             tissue=None if self.tissue is None else self.tissue.copy(),
             needle=None if self.needle is None else self.needle.copy(),
             suture=None if self.suture is None else self.suture.copy(),
+            coupling=None if self.coupling is None else self.coupling.copy(),
+            suture_tension=None if self.suture_tension is None else self.suture_tension.copy(),
+            needle_reaction=None if self.needle_reaction is None else self.needle_reaction.copy(),
             time=self.time,
             diverged=self.diverged,
         )
@@ -416,15 +489,19 @@ class State:
     def restore(self, snapshot: State) -> None:
         """Make this state equal to ``snapshot`` (deep copies; the snapshot stays reusable).
 
-        The tissue arrays are overwritten in place, so references to them stay valid; needle and suture
-        states are replaced by copies of the snapshot's.
+        The tissue arrays are overwritten in place, so references to them stay valid; the other parts are
+        replaced by copies of the snapshot's.
         """
         if (self.tissue is None) != (snapshot.tissue is None):
             raise ValueError("snapshot and state disagree on whether there is tissue")
         if self.tissue is not None:
             self.tissue.assign(snapshot.tissue)
-        self.needle = None if snapshot.needle is None else snapshot.needle.copy()
-        self.suture = None if snapshot.suture is None else snapshot.suture.copy()
+        copy = snapshot.snapshot()
+        self.needle = copy.needle
+        self.suture = copy.suture
+        self.coupling = copy.coupling
+        self.suture_tension = copy.suture_tension
+        self.needle_reaction = copy.needle_reaction
         self.time = snapshot.time
         self.diverged = snapshot.diverged
 

@@ -6,12 +6,16 @@ overridden) and returns the model, a state at rest, named particle regions and t
 
 from __future__ import annotations
 
-from dataclasses import dataclass, field
+from dataclasses import asdict, dataclass, field
 
 import numpy as np
 
+from suture_gym.sim.coupling import CouplingModel, CouplingParams
 from suture_gym.sim.mesh import TetMesh, box_tet_grid
 from suture_gym.sim.model import Model, State, TissueMaterial, TissueModel, TissueState
+from suture_gym.sim.needle import NeedleModel, NeedleShape, NeedleState
+from suture_gym.sim.quat import quat_from_axis_angle, quat_mul, quat_normalize, quat_to_matrix
+from suture_gym.sim.rod import RodModel, RodState, SutureParams
 
 STANDARD_GRAVITY = 9.81  # m/s^2
 
@@ -270,3 +274,156 @@ def paper_cube(
     )
     scene.settings["scene"] = "paper_cube"
     return scene
+
+
+#: Needle orientation across the wound of :func:`two_bar_wound` (body to world): the needle's plane is the
+#: y-z plane, its crown up, the tip on the -y side pointing down; turning it about +x drives it tip first
+#: towards +y, across the wound (shape x -> world -y, shape y -> world +z, shape z -> world -x).
+WOUND_NEEDLE_QUAT = np.array([0.5, 0.5, -0.5, -0.5])
+
+
+def needle_arc_pose(
+    needle: NeedleModel, arc_center, angle: float, base_quat=WOUND_NEEDLE_QUAT, axis=(1.0, 0.0, 0.0)
+) -> tuple[np.ndarray, np.ndarray]:
+    """Pose ``(body_pos (3,) m, body_quat (4,))`` of a needle whose circle is centred at ``arc_center`` (3,) m,
+    turned by ``angle`` rad about ``axis`` (3,) from ``base_quat`` (4,): how a surgeon drives a curved needle,
+    about its own centre."""
+    axis = np.asarray(axis, dtype=np.float64)
+    quat = quat_normalize(quat_mul(quat_from_axis_angle(axis, float(angle)), np.asarray(base_quat, dtype=np.float64)))
+    pos = np.asarray(arc_center, dtype=np.float64) - quat_to_matrix(quat) @ needle.arc_center_body
+    return pos, quat
+
+
+def add_strands(
+    scene: Scene,
+    needle_pose: tuple,
+    *,
+    needle_shape: NeedleShape | None = None,
+    gravity_compensation: bool = True,
+    suture_params: SutureParams | None = None,
+    suture_direction=(0.0, -1.0, 0.0),
+    suture_tail_pinned: bool = False,
+    coupling_params: CouplingParams | None = None,
+) -> Scene:
+    """The tissue ``scene`` with a needle, an optional suture on its swage and their coupling with the tissue.
+
+    Args:
+        scene: a tissue scene (its tissue state is copied as the initial tissue state).
+        needle_pose: ``(body_pos (3,) m, body_quat (4,))`` of the needle at rest (see :func:`needle_arc_pose`).
+        needle_shape: :class:`~suture_gym.sim.needle.NeedleShape` (default: 26 mm half circle, 30 nodes).
+        gravity_compensation: the haptic device carries the needle's weight.
+        suture_params: :class:`~suture_gym.sim.rod.SutureParams`, or None for a needle alone.
+        suture_direction: (3,) the suture lies straight from the swage along this direction at rest.
+        suture_tail_pinned: hold the suture's free end where it starts (a knot or an assistant's forceps).
+        coupling_params: :class:`~suture_gym.sim.coupling.CouplingParams` (default parameters if None).
+
+    Returns:
+        A new :class:`Scene` (the same regions) whose settings add ``needle``, ``suture`` and ``coupling``.
+    """
+    tissue = scene.model.tissue
+    needle = NeedleModel.from_shape(needle_shape, gravity_compensation=gravity_compensation)
+    needle_state = NeedleState.at_rest(*needle_pose)
+    suture = suture_state = None
+    if suture_params is not None:
+        suture = RodModel.from_params(suture_params)
+        if suture_tail_pinned:
+            suture = suture.with_pins([suture.node_count - 1])
+        swage = needle_state.body_pos + quat_to_matrix(needle_state.body_quat) @ needle.swage_pos_body
+        suture_state = RodState.straight(suture, swage, suture_direction)
+    coupling = None
+    if tissue is not None:
+        coupling = CouplingModel.build(tissue, needle, suture, coupling_params or CouplingParams())
+    model = Model(tissue=tissue, needle=needle, suture=suture, coupling=coupling, gravity=scene.model.gravity)
+    state = State.initial(model, needle=needle_state, suture=suture_state)
+    if tissue is not None:
+        state.tissue.assign(scene.state.tissue)
+    settings = {
+        **scene.settings,
+        "needle": {**asdict(needle.shape), "gravity_compensation": gravity_compensation},
+        "needle_pose": {"body_pos_m": needle_state.body_pos.tolist(), "body_quat": needle_state.body_quat.tolist()},
+        "suture": None
+        if suture_params is None
+        else {
+            "length_m": suture_params.length,
+            "node_count": suture_params.node_count,
+            "radius_m": suture_params.radius,
+            "youngs_modulus_pa": suture_params.material.youngs_modulus,
+            "inextensible": suture_params.inextensible,
+            "direction": [float(v) for v in suture_direction],
+            "tail_pinned": suture_tail_pinned,
+        },
+        "coupling": None if coupling is None else asdict(coupling.params),
+    }
+    return Scene(model=model, state=state, regions=scene.regions, settings=settings)
+
+
+def two_bar_suturing(
+    bar_size: tuple[float, float, float] = (0.03, 0.015, 0.015),
+    cells: tuple[int, int, int] = (6, 3, 3),
+    gap: float = 0.004,
+    material: TissueMaterial | None = None,
+    centre_height: float = 0.002,
+    angle: float = 0.0,
+    suture_params: SutureParams | None = None,
+    suture_direction=(0.0, -1.0, 0.15),
+    suture_tail_pinned: bool = True,
+    coupling_params: CouplingParams | None = None,
+) -> Scene:
+    """:func:`two_bar_wound` (on its rigid base) ready to be sutured across the wound.
+
+    The default needle (26 mm half circle, radius 8.3 mm) hangs over the middle of the wound in the plane
+    ``x = length / 2`` with its circle centred ``centre_height`` above the top faces, over the middle of the
+    gap, turned by ``angle`` (0: tip on bar A's side, 2 mm above it, pointing down; see
+    :data:`WOUND_NEEDLE_QUAT`). Turning it about +x through about 2 pi takes the needle through bar A, across
+    the gap, through bar B and out. The suture (default 8 cm, 81 nodes) starts straight from the swage along
+    ``suture_direction`` with its tail held.
+
+    Defaults for the 1 kPa paper tissue: ``puncture_force = 0.015 N`` and ``needle_axial_friction = 0.5 N/m``
+    (1 N would indent this tissue by centimetres before piercing it; see :class:`CouplingParams`; at 0.05 N
+    the second bite dents bar B's wound face by about 6 mm while the needle turns, the axial load stays
+    below 0.02 N and the tip slides off). The threshold counts the axial load on the tip, see
+    :func:`~suture_gym.sim.coupling.coupling_finish`.
+    Settings add ``arc_center_m`` and ``stitch_x_m``.
+    """
+    base = two_bar_wound(bar_size=bar_size, cells=cells, gap=gap, material=material)
+    length, width, height = (float(v) for v in bar_size)
+    center = np.array([0.5 * length, width + 0.5 * gap, height + centre_height])
+    needle = NeedleModel.from_shape()
+    scene = add_strands(
+        base,
+        needle_arc_pose(needle, center, angle),
+        suture_params=suture_params or SutureParams(length=0.08, node_count=81),
+        suture_direction=suture_direction,
+        suture_tail_pinned=suture_tail_pinned,
+        coupling_params=coupling_params or CouplingParams(puncture_force=0.015, needle_axial_friction=0.5),
+    )
+    scene.settings["scene"] = "two_bar_suturing"
+    scene.settings["arc_center_m"] = center.tolist()
+    scene.settings["stitch_x_m"] = 0.5 * length
+    scene.settings["centre_height_m"] = centre_height
+    return scene
+
+
+def wound_gap(
+    scene: Scene, state: State | None = None, x_range: float | None = None, depth: float | None = None
+) -> float:
+    """Mean gap (m) between the facing wound faces of a :func:`two_bar_wound` scene: mean ``y`` of the right
+    face's particles minus that of the left face's, over particles within ``x_range`` of the middle of the
+    wound (all if None) and within ``depth`` of the top (all if None), in ``state`` (default the scene's)."""
+    state = scene.state if state is None else state
+    rest = scene.model.tissue.particle_rest_q
+    q = state.tissue.particle_q
+    length = float(rest[:, 0].max())
+    top = float(rest[:, 2].max())
+    means = []
+    for name in ("left_wound_face", "right_wound_face"):
+        idx = scene.regions[name]
+        keep = np.ones(idx.size, dtype=bool)
+        if x_range is not None:
+            keep &= np.abs(rest[idx, 0] - 0.5 * length) <= x_range + 1e-12
+        if depth is not None:
+            keep &= rest[idx, 2] >= top - depth - 1e-12
+        if not keep.any():
+            raise ValueError(f"no {name} particle within x_range={x_range} m and depth={depth} m")
+        means.append(float(q[idx[keep], 1].mean()))
+    return means[1] - means[0]

@@ -2,17 +2,30 @@
 
 :meth:`Solver.step` advances a :class:`~suture_gym.sim.model.State` by one substep ``dt`` in place:
 
-1. **Predict** (:meth:`Solver._predict`): store ``x_prev = x``; for every particle with inverse mass
-   ``w > 0``: ``v <- v exp(-c dt) + g dt`` (mass-proportional damping ``c`` of its material, then gravity;
-   semi-implicit Euler), ``x <- x + v dt``. Pinned particles keep ``v = 0``. Multipliers are reset to zero.
-2. **Detect**: collision and coupling detection between needle, suture and tissue goes here, between
-   prediction and projection (it needs the predicted positions and creates the constraints projected next).
-3. **Project** (:meth:`Solver._project`): ``iterations`` Gauss-Seidel sweeps. Each sweep projects the tet
-   constraints colour by colour (:func:`~suture_gym.sim.tissue.project_tets`), then the roller supports;
-   coupling constraints (node-triangle, node-path, node-access, needle-suture attachment) and the suture's
-   stretch/bend constraints join each sweep here.
-4. **Velocities** (:meth:`Solver._update_velocities`): ``v = (x - x_prev) / dt``; a non-finite position or a
-   speed above ``max_speed`` sets ``state.diverged``.
+1. **Predict** (:meth:`Solver._predict`): tissue particles with inverse mass ``w > 0``: ``x_prev = x``,
+   ``v <- v exp(-c dt) + g dt`` (mass-proportional damping ``c`` of their material, then gravity;
+   semi-implicit Euler), ``x <- x + v dt``; pinned particles keep ``v = 0``; tet multipliers reset. The needle:
+   Newton-Euler under the action wrench ``Control.needle_wrench`` at its grip point and gravity
+   (:func:`~suture_gym.sim.needle.needle_predict`). The suture nodes under gravity
+   (:func:`~suture_gym.sim.rod.rod_predict`). A non-finite prediction flags divergence and ends the substep.
+2. **Detect** (:func:`~suture_gym.sim.coupling.coupling_detect`): strand node positions, broad phase,
+   signed distances, node states, puncture, path growth, exit, release and the coupling constraint rows
+   (paper section 4), from the predicted positions. Suture nodes held on a path or passing an access point
+   get the inertia of the tissue point they are embedded in (:func:`~suture_gym.sim.coupling.embedded_inv_mass`)
+   for this substep's projections.
+3. **Project** (:meth:`Solver._project`): ``iterations`` sweeps. Each sweep projects the tet constraints
+   colour by colour (:func:`~suture_gym.sim.tissue.project_tets`) and the roller supports; then, Gauss-Seidel,
+   the needle's node-triangle and node-path rows with axial friction (rigid body, generalised inverse mass),
+   the suture's node-path rows and the node-access rows, all two-way with the tissue
+   (:mod:`suture_gym.sim.coupling`); last the suture's direct solve (inextensibility, bending, two-way swage
+   attachment, and its node-triangle contacts with the tissue as one-sided rows; up to ``rod_iterations``
+   iterations, see :meth:`Solver._project_suture`), so a substep ends with the thread at its rest length.
+4. **Velocities** (:meth:`Solver._update_velocities`): ``v = (x - x_prev) / dt`` for tissue particles and
+   suture nodes, the needle's linear and angular velocity from its pose change; a non-finite value or a speed
+   above ``max_speed`` sets ``state.diverged``. Then the readings: the coupling forces (tip force for the
+   next puncture test, friction, largest force, damage flag), the suture tensions (the rod's warm start for
+   the next substep, kept in the State so that snapshots replay bit for bit) and the constraint wrench on the
+   needle (:func:`~suture_gym.sim.needle.needle_constraint_wrench`, the haptic reaction).
 5. ``state.time += dt``.
 
 The damping is applied to the old velocity before gravity is added so that a body at rest under gravity
@@ -26,18 +39,40 @@ one: default tissue (E = 1 kPa, nu = 0.49) in 5 mm cells compressed by 20% loses
 ``dt`` = 1 ms, 0.58% at 0.25 ms, against 0.50% analytically (``volume_compression`` check), while bending
 and sag under gravity are within about 1% at 1 ms (``dt_independence`` check). Smaller substeps or more
 ``iterations`` reduce the bias.
+
+Robustness: every loop is bounded (fixed sweeps and rod iterations, path buffers of fixed size that flag
+overflow instead of growing), and divergence is reported in ``state.diverged``, never raised.
 """
 
 from __future__ import annotations
 
 import math
+import time
 from dataclasses import dataclass
 
 import numpy as np
 from numba import njit
 
+from suture_gym.sim.coupling import (
+    apply_contact_reaction,
+    coupling_detect,
+    coupling_finish,
+    embedded_inv_mass,
+    project_access_rows,
+    project_needle_rows,
+    project_suture_path_rows,
+    rod_iteration_with_contacts,
+    strand_positions_kernel,
+    suture_contact_rows,
+)
 from suture_gym.sim.model import Control, Model, State
+from suture_gym.sim.needle import needle_constraint_wrench, needle_predict, needle_update_velocities
+from suture_gym.sim.quat import quat_to_matrix
+from suture_gym.sim.rod import rod_predict
 from suture_gym.sim.tissue import project_rollers, project_tets, tet_residual
+
+#: Phases timed by :meth:`Solver.step` when given a ``timings`` dict (seconds accumulated per phase).
+PHASES = ("predict", "detect", "project", "velocities")
 
 
 @njit(cache=True)
@@ -109,6 +144,14 @@ def update_particle_velocities(q: np.ndarray, q_prev: np.ndarray, dt: float, max
     return bad
 
 
+@njit(cache=True)
+def _all_finite(a):
+    for v in a.flat:
+        if not math.isfinite(v):
+            return False
+    return True
+
+
 @dataclass(frozen=True)
 class Solver:
     """XPBD substep integrator. Holds hyperparameters only; all data lives in Model and State.
@@ -116,23 +159,35 @@ class Solver:
     Attributes:
         iterations: Gauss-Seidel sweeps per substep (>= 1). One sweep per substep with small substeps is
             the XPBD "small steps" regime the defaults are validated in.
-        max_speed: particle speed, m/s, above which the state is flagged as diverged (> 0).
+        max_speed: speed, m/s, of any particle, suture node or needle point above which the state is flagged
+            as diverged (> 0).
+        rod_iterations: most direct-solver iterations of the suture per sweep (>= 1).
+        rod_tolerance: the suture's solve stops once its residual (strain-like, dimensionless) is below this
+            (>= 0).
     """
 
     iterations: int = 1
     max_speed: float = 50.0
+    rod_iterations: int = 8
+    rod_tolerance: float = 1.0e-6
 
     def __post_init__(self) -> None:
-        if isinstance(self.iterations, bool) or not isinstance(self.iterations, (int, np.integer)):
-            raise ValueError(f"Solver.iterations must be an integer, got {self.iterations!r}")
-        if self.iterations < 1:
-            raise ValueError(f"Solver.iterations must be >= 1, got {self.iterations}")
-        if isinstance(self.max_speed, bool) or not isinstance(self.max_speed, (int, float, np.floating)):
-            raise ValueError(f"Solver.max_speed must be a number in m/s, got {self.max_speed!r}")
-        if not (math.isfinite(self.max_speed) and self.max_speed > 0):
-            raise ValueError(f"Solver.max_speed must be a positive finite speed in m/s, got {self.max_speed!r}")
-        object.__setattr__(self, "iterations", int(self.iterations))
-        object.__setattr__(self, "max_speed", float(self.max_speed))
+        for name in ("iterations", "rod_iterations"):
+            value = getattr(self, name)
+            if isinstance(value, bool) or not isinstance(value, (int, np.integer)):
+                raise ValueError(f"Solver.{name} must be an integer, got {value!r}")
+            if value < 1:
+                raise ValueError(f"Solver.{name} must be >= 1, got {value}")
+            object.__setattr__(self, name, int(value))
+        for name, positive in (("max_speed", True), ("rod_tolerance", False)):
+            value = getattr(self, name)
+            if isinstance(value, bool) or not isinstance(value, (int, float, np.floating)):
+                raise ValueError(f"Solver.{name} must be a number, got {value!r}")
+            if not (math.isfinite(value) and (value > 0 if positive else value >= 0)):
+                raise ValueError(
+                    f"Solver.{name} must be a finite number {'> 0' if positive else '>= 0'}, got {value!r}"
+                )
+            object.__setattr__(self, name, float(value))
 
     def step(
         self,
@@ -141,26 +196,38 @@ class Solver:
         control: Control,
         dt: float,
         residuals: np.ndarray | None = None,
+        timings: dict | None = None,
     ) -> None:
         """Advance ``state`` by one substep of ``dt`` seconds, in place, in the order of the module docstring.
 
         Args:
             model: the static scene.
             state: the state to advance; left untouched if already ``diverged``.
-            control: inputs held over the step (the needle wrench; unused by tissue-only scenes).
+            control: inputs held over the step (the needle wrench at the grip point).
             dt: substep length, s; finite and positive.
             residuals: optional ``(iterations,) float64`` array written with the tissue XPBD residual
                 (:func:`~suture_gym.sim.tissue.tet_residual`) after each sweep, for convergence studies.
+            timings: optional dict; the wall-clock seconds of each phase in :data:`PHASES` are added to it.
         """
         dt = self._check_inputs(model, state, control, dt, residuals)
         if state.diverged:
             return
-        self._predict(model, state, dt)
+        clock = _Clock(timings)
+        self._predict(model, state, control, dt)
+        clock.lap("predict")
+        if not self._finite(state):
+            state.diverged = True
+            return
+        self._detect(model, state)
+        clock.lap("detect")
         for sweep in range(self.iterations):
             self._project(model, state, dt)
             if residuals is not None:
                 residuals[sweep] = self.residual(model, state, dt)
+        clock.lap("project")
         state.diverged = self._update_velocities(model, state, dt)
+        self._read_forces(model, state, dt)
+        clock.lap("velocities")
         state.time += dt
 
     def residual(self, model: Model, state: State, dt: float) -> float:
@@ -188,8 +255,9 @@ class Solver:
             raise ValueError(f"dt must be a finite positive number of seconds, got {dt!r}")
         if not isinstance(model, Model) or not isinstance(state, State) or not isinstance(control, Control):
             raise ValueError("step expects (Model, State, Control, dt)")
-        if (model.tissue is None) != (state.tissue is None):
-            raise ValueError("model.tissue and state.tissue must both be set or both be None")
+        for name in ("tissue", "needle", "suture", "coupling"):
+            if (getattr(model, name) is None) != (getattr(state, name) is None):
+                raise ValueError(f"model.{name} and state.{name} must both be set or both be None")
         if model.tissue is not None:
             n, t = model.tissue.particle_count, model.tissue.tet_count
             if state.tissue.particle_q.shape != (n, 3) or state.tissue.tet_multiplier.shape != (t, 2):
@@ -197,11 +265,21 @@ class Solver:
                     f"state.tissue does not match model.tissue: {state.tissue.particle_q.shape[0]} particles and "
                     f"{state.tissue.tet_multiplier.shape[0]} tets vs {n} and {t}"
                 )
+        if model.suture is not None:
+            s = model.suture.node_count
+            if (
+                state.suture.node_pos.shape != (s, 3)
+                or state.suture_tension is None
+                or state.suture_tension.shape != (s - 1,)
+            ):
+                raise ValueError(f"state.suture and state.suture_tension must match the model's {s} suture nodes")
+        if model.needle is not None and (state.needle_reaction is None or state.needle_reaction.shape != (6,)):
+            raise ValueError("state.needle_reaction must be a (6,) array when the model has a needle")
         if residuals is not None and (residuals.shape != (self.iterations,) or residuals.dtype != np.float64):
             raise ValueError(f"residuals must be a float64 array of shape ({self.iterations},), got {residuals.shape}")
         return dt
 
-    def _predict(self, model: Model, state: State, dt: float) -> None:
+    def _predict(self, model: Model, state: State, control: Control, dt: float) -> None:
         """Phase 1: predicted positions of every simulated body; multipliers reset."""
         tissue, tissue_state = model.tissue, state.tissue
         if tissue is not None:
@@ -215,9 +293,54 @@ class Solver:
                 tissue_state.particle_q_prev,
             )
             tissue_state.tet_multiplier[...] = 0.0
+        if model.needle is not None:
+            needle_predict(model.needle, state.needle, control.needle_wrench, dt, model.gravity)
+        if model.suture is not None:
+            rod_predict(model.suture, state.suture, dt, model.gravity)
+
+    @staticmethod
+    def _finite(state: State) -> bool:
+        """All predicted positions and orientations are finite."""
+        arrays = []
+        if state.tissue is not None:
+            arrays.append(state.tissue.particle_q)
+        if state.needle is not None:
+            arrays += [state.needle.body_pos, state.needle.body_quat]
+        if state.suture is not None:
+            arrays.append(state.suture.node_pos)
+        return all(_all_finite(a) for a in arrays)
+
+    def _detect(self, model: Model, state: State) -> None:
+        """Phase 2: coupling detection and this substep's constraint rows."""
+        coupling = model.coupling
+        if coupling is None:
+            return
+        scratch = model.scratch
+        work = scratch.coupling_work
+        suture_q = state.suture.node_pos if state.suture is not None else np.zeros((0, 3))
+        strand_positions_kernel(
+            state.needle.body_pos, state.needle.body_quat, model.needle.node_pos_body, suture_q, scratch.strand_q
+        )
+        coupling_detect(coupling, state.coupling, work, model.tissue, state.tissue.particle_q, scratch.strand_q)
+        if model.suture is not None:
+            embedded_inv_mass(
+                coupling.needle_node_count,
+                work.row_kind,
+                work.row_tissue,
+                work.row_weight,
+                work.access_count,
+                work.access_node,
+                work.access_weight,
+                work.access_tri,
+                work.access_bary,
+                coupling.surface.tri_vertices,
+                model.tissue.particle_inv_mass,
+                model.suture.node_inv_mass,
+                work.suture_inv_mass,
+            )
 
     def _project(self, model: Model, state: State, dt: float) -> None:
-        """Phase 3, one Gauss-Seidel sweep over every constraint group."""
+        """Phase 3, one sweep over every constraint group."""
         tissue, tissue_state = model.tissue, state.tissue
         if tissue is not None:
             project_tets(
@@ -239,6 +362,131 @@ class Solver:
                 tissue.roller_offset,
                 tissue_state.particle_q,
             )
+        if model.coupling is not None:
+            self._project_coupling(model, state, dt)
+        if model.suture is not None:
+            self._project_suture(model, state, dt)
+
+    @staticmethod
+    def _project_coupling(model: Model, state: State, dt: float) -> None:
+        """The Gauss-Seidel coupling rows of needle and suture with the tissue."""
+        coupling, work = model.coupling, model.scratch.coupling_work
+        needle, needle_state = model.needle, state.needle
+        tissue_inv_mass = model.tissue.particle_inv_mass
+        tissue_q = state.tissue.particle_q
+        tri_vertices = coupling.surface.tri_vertices
+        eps = coupling.params.resistance_eps
+        project_needle_rows(
+            coupling.needle_node_count,
+            needle.body_inv_mass,
+            needle.body_inv_inertia,
+            needle.node_pos_body,
+            needle_state.body_pos_prev,
+            needle_state.body_quat_prev,
+            tissue_inv_mass,
+            state.tissue.particle_q_prev,
+            tri_vertices,
+            coupling.strand_friction,
+            eps,
+            dt,
+            work.row_kind,
+            work.row_tri,
+            work.row_tissue,
+            work.row_weight,
+            work.row_tangent,
+            work.row_lambda,
+            work.row_friction_lambda,
+            work.row_contact_normal,
+            needle_state.body_pos,
+            needle_state.body_quat,
+            tissue_q,
+        )
+        suture_q = state.suture.node_pos if state.suture is not None else np.zeros((0, 3))
+        if state.suture is not None:
+            project_suture_path_rows(
+                coupling.needle_node_count,
+                work.row_kind,
+                work.row_tissue,
+                work.row_weight,
+                work.row_tangent,
+                work.suture_inv_mass,
+                tissue_inv_mass,
+                work.row_lambda,
+                suture_q,
+                tissue_q,
+            )
+        project_access_rows(
+            work.access_count,
+            work.access_node,
+            work.access_weight,
+            work.access_rest,
+            work.access_tri,
+            work.access_bary,
+            coupling.needle_node_count,
+            needle.body_inv_mass,
+            needle.body_inv_inertia,
+            needle.node_pos_body,
+            work.suture_inv_mass,
+            tissue_inv_mass,
+            tri_vertices,
+            work.access_lambda,
+            needle_state.body_pos,
+            needle_state.body_quat,
+            suture_q,
+            tissue_q,
+        )
+
+    def _project_suture(self, model: Model, state: State, dt: float) -> None:
+        """The suture's direct solve (:func:`~suture_gym.sim.coupling.rod_iteration_with_contacts`, the rod's
+        iteration with two-way contact rows), warm-started from ``state.suture_tension``, up to
+        ``rod_iterations`` iterations until its residual is below ``rod_tolerance``.
+
+        With coupling, nodes held on a path or passing an access point use their embedded inverse masses
+        (:func:`~suture_gym.sim.coupling.embedded_inv_mass`), and the suture's node-triangle rows enter the solve
+        as one-sided contact rows (:func:`~suture_gym.sim.coupling.suture_contact_rows`); after each iteration
+        the tissue takes their reaction (:func:`~suture_gym.sim.coupling.apply_contact_reaction`). The warm start
+        is loaded as the stretch multipliers that the rod's ``begin`` reads it from.
+        """
+        suture, rod_state, work = model.suture, state.suture, model.scratch.rod_work
+        coupling = model.coupling
+        cwork = model.scratch.coupling_work
+        inv_mass = suture.node_inv_mass if coupling is None else cwork.suture_inv_mass
+        contact_w = np.zeros(suture.node_count) if coupling is None else cwork.suture_contact_w
+        work.lam[:] = 0.0
+        work.lam[1:, 0] = state.suture_tension
+        work.begin(rod_state)
+        work.contact_gap[:] = np.inf
+        needle, needle_state = model.needle, state.needle
+        if needle is None:
+            n_args = (False, 0.0, np.zeros((3, 3)), np.zeros(3))
+            n_pos, n_quat = np.zeros(3), np.array([1.0, 0.0, 0.0, 0.0])
+        else:
+            n_args = (True, needle.body_inv_mass, needle.body_inv_inertia, needle.swage_pos_body)
+            n_pos, n_quat = needle_state.body_pos, needle_state.body_quat
+        for _ in range(self.rod_iterations):
+            if coupling is not None:
+                suture_contact_rows(
+                    coupling.needle_node_count, coupling.params.resistance_eps, cwork.row_kind, cwork.row_tri,
+                    coupling.surface.tri_vertices, state.tissue.particle_q, model.tissue.particle_inv_mass,
+                    rod_state.node_pos, work.contact_gap, work.contact_normal, cwork.suture_contact_bary,
+                    cwork.suture_contact_w,
+                )  # fmt: skip
+            residual = rod_iteration_with_contacts(
+                inv_mass, suture.seg_rest_length, suture.seg_inv_inertia, suture.seg_stretch_compliance,
+                suture.bend_compliance, dt, self.rod_tolerance, *n_args, work.seg_quat_start, work.seg_tension_prev,
+                work.contact_gap, work.contact_normal, contact_w, work.seg_rot, work.seg_s, work.seg_winv,
+                work.bend_b, work.seg_h, work.att_r, work.att_winv, work.contact_active, work.diag, work.lower,
+                work.rhs, work.dinv, work.y, work.z, work.lam, rod_state.node_pos, rod_state.seg_quat, n_pos,
+                n_quat, work.contact_push,
+            )  # fmt: skip
+            if residual <= self.rod_tolerance:
+                break
+            if coupling is not None:
+                apply_contact_reaction(
+                    coupling.needle_node_count, cwork.row_kind, cwork.row_tri, coupling.surface.tri_vertices,
+                    work.contact_normal, cwork.suture_contact_bary, work.z, model.tissue.particle_inv_mass,
+                    cwork.row_lambda, state.tissue.particle_q,
+                )  # fmt: skip
 
     def _update_velocities(self, model: Model, state: State, dt: float) -> bool:
         """Phase 4: velocities from the position change; returns whether the state diverged."""
@@ -248,4 +496,39 @@ class Solver:
             diverged |= update_particle_velocities(
                 tissue_state.particle_q, tissue_state.particle_q_prev, dt, self.max_speed, tissue_state.particle_qd
             )
+        if model.suture is not None:
+            rod = state.suture
+            diverged |= update_particle_velocities(rod.node_pos, rod.node_pos_prev, dt, self.max_speed, rod.node_vel)
+        if model.needle is not None:
+            needle_update_velocities(state.needle, dt)
+            reach = float(np.sqrt((model.needle.node_pos_body**2).sum(axis=1).max()))
+            speed = float(np.linalg.norm(state.needle.body_vel)) + reach * float(
+                np.linalg.norm(state.needle.body_omega)
+            )
+            diverged |= not speed <= self.max_speed
         return diverged
+
+    def _read_forces(self, model: Model, state: State, dt: float) -> None:
+        """Readings after the projection: coupling forces, suture tensions (warm start), needle reaction."""
+        if model.coupling is not None:
+            tip_direction = quat_to_matrix(state.needle.body_quat) @ model.needle.tip_dir_body
+            coupling_finish(model.coupling, state.coupling, model.scratch.coupling_work, dt, tip_direction)
+        if model.suture is not None:
+            state.suture_tension[:] = np.linalg.norm(model.scratch.rod_work.lam[1:, :3], axis=1)
+        if model.needle is not None:
+            state.needle_reaction[:] = needle_constraint_wrench(model.needle, state.needle, dt)
+
+
+class _Clock:
+    """Adds the wall time since the previous lap to ``timings[phase]`` (does nothing without a dict)."""
+
+    def __init__(self, timings: dict | None):
+        self.timings = timings
+        self.last = time.perf_counter() if timings is not None else 0.0
+
+    def lap(self, phase: str) -> None:
+        if self.timings is None:
+            return
+        now = time.perf_counter()
+        self.timings[phase] = self.timings.get(phase, 0.0) + now - self.last
+        self.last = now

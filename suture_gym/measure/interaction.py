@@ -1,0 +1,494 @@
+"""Needle/suture-tissue interaction checks (paper section 4) and the full-scene benchmark.
+
+The scripted stitch (:class:`StitchController`, :func:`run_stitch`) drives the needle the way a surgeon does:
+a virtual coupling turns it about its own centre through both wound edges of the two-bar scene, then it holds
+the needle's orientation and pulls the thread with a constant force while the thread's tail is held. The
+stitch checks measure residuals at the end of every substep of that run (after the solver's last projection,
+which is the suture's direct solve); every parameter is recorded in ``settings``.
+"""
+
+from __future__ import annotations
+
+import functools
+import math
+import time
+from dataclasses import asdict, dataclass, field
+
+import numpy as np
+
+from suture_gym.measure.registry import CheckResult, benchmark, check
+from suture_gym.sim.collision import signed_distance
+from suture_gym.sim.coupling import NODE_IN, ROW_PATH, CouplingParams, access_point
+from suture_gym.sim.model import Control, State, TissueMaterial
+from suture_gym.sim.needle import NeedleModel, VirtualCoupling, needle_point_velocity
+from suture_gym.sim.quat import quat_conj, quat_mul, quat_rotation_vector, quat_to_matrix
+from suture_gym.sim.rod import SutureParams
+from suture_gym.sim.scenes import Scene, add_strands, needle_arc_pose, two_bar_suturing, two_bar_wound, wound_gap
+from suture_gym.sim.solver import PHASES, Solver
+
+DT = 1.0e-3  # s, substep of every run here
+GAP_WINDOW = {"x_range": 0.005, "depth": 0.01}  # m, wound faces near the stitch where the gap is measured
+
+
+@dataclass
+class StitchController:
+    """Scripted surgeon for :func:`~suture_gym.sim.scenes.two_bar_suturing` scenes.
+
+    Turn phase (``t < turn_angle / turn_rate``): a :class:`~suture_gym.sim.needle.VirtualCoupling` pulls the
+    needle towards the pose turned by ``turn_rate t`` about its circle's centre ``arc_center`` (3,) m.
+    Pull phase: the needle's orientation is held by the coupling's angular spring-damper and a constant force
+    ``pull_force`` N along ``pull_direction`` acts at the grip, with linear damping ``pull_damping`` N s/m.
+    """
+
+    needle: NeedleModel
+    arc_center: np.ndarray
+    turn_rate: float = 1.0  # rad/s
+    turn_angle: float = 6.1  # rad: the swage leaves bar B at about 2 pi - 0.24 for the default scene
+    pull_force: float = 0.05  # N
+    pull_direction: tuple = (0.0, -1.0, 0.5)
+    pull_damping: float = 2.0  # N s/m
+    coupling: VirtualCoupling = field(default_factory=VirtualCoupling)
+
+    @property
+    def turn_time(self) -> float:
+        """Duration of the turn phase, s."""
+        return self.turn_angle / self.turn_rate
+
+    def wrench(self, t: float, state: State) -> np.ndarray:
+        """Grip-point wrench (6,) ``[force N, torque N m]`` at time ``t`` s for the needle ``state.needle``."""
+        needle = self.needle
+        if t < self.turn_time:
+            pos, quat = needle_arc_pose(needle, self.arc_center, self.turn_rate * t)
+            return self.coupling.wrench(needle, state.needle, pos + quat_to_matrix(quat) @ needle.grip_pos_body, quat)
+        _, hold = needle_arc_pose(needle, self.arc_center, self.turn_angle)
+        direction = np.asarray(self.pull_direction, dtype=np.float64)
+        direction = direction / np.linalg.norm(direction)
+        velocity = needle_point_velocity(needle, state.needle, needle.grip_pos_body)
+        turn = quat_rotation_vector(quat_mul(hold, quat_conj(state.needle.body_quat)))
+        force = self.pull_force * direction - self.pull_damping * velocity
+        torque = self.coupling.angular_stiffness * turn - self.coupling.angular_damping * state.needle.body_omega
+        return np.concatenate([force, torque])
+
+    def settings(self) -> dict:
+        return {
+            "turn_rate_rad_s": self.turn_rate,
+            "turn_angle_rad": self.turn_angle,
+            "pull_force_n": self.pull_force,
+            "pull_direction": list(self.pull_direction),
+            "pull_damping_n_s_m": self.pull_damping,
+            "virtual_coupling": asdict(self.coupling),
+        }
+
+
+def run_stitch(
+    scene: Scene,
+    controller: StitchController,
+    duration: float,
+    solver: Solver | None = None,
+    probe=None,
+    dt: float = DT,
+) -> dict:
+    """Step ``scene`` under ``controller`` for ``duration`` s; ``probe(scene, t)`` is called after every substep.
+
+    Returns the wound gap at rest, at the end of the turn and at the end (m, :data:`GAP_WINDOW`), the number
+    of substeps, whether it diverged and the phase timings (s).
+    """
+    solver = solver or Solver()
+    control = Control()
+    timings: dict = {}
+    gap_rest = wound_gap(scene, **GAP_WINDOW)
+    gap_turn = math.nan
+    steps = int(round(duration / dt))
+    for k in range(steps):
+        t = k * dt
+        if math.isnan(gap_turn) and t >= controller.turn_time:
+            gap_turn = wound_gap(scene, **GAP_WINDOW)
+        control.needle_wrench = controller.wrench(t, scene.state)
+        solver.step(scene.model, scene.state, control, dt, timings=timings)
+        if probe is not None:
+            probe(scene, (k + 1) * dt)
+        if scene.state.diverged:
+            break
+    return {
+        "gap_rest_m": gap_rest,
+        "gap_after_turn_m": gap_turn,
+        "gap_final_m": wound_gap(scene, **GAP_WINDOW),
+        "substeps": k + 1,
+        "diverged": bool(scene.state.diverged),
+        "timings_s": timings,
+    }
+
+
+def strand_now(scene: Scene) -> np.ndarray:
+    """Strand node positions (M, 3) m of the scene's current state (needle nodes, then suture nodes 1..)."""
+    model, state = scene.model, scene.state
+    needle = state.needle.body_pos + model.needle.node_pos_body @ quat_to_matrix(state.needle.body_quat).T
+    if state.suture is None:
+        return needle
+    return np.vstack([needle, state.suture.node_pos[1:]])
+
+
+class _StitchProbe:
+    """End-of-substep residuals of the coupling constraints during a stitch."""
+
+    def __init__(self):
+        self.path_needle = 0.0
+        self.path_suture = 0.0
+        self.path_suture_samples: list[float] = []
+        self.access = 0.0
+        self.access_samples: list[float] = []
+        self.outside_depth = 0.0
+        self.inside_nodes = 0
+        self.suture_in_nodes_max = 0
+
+    def __call__(self, scene: Scene, t: float) -> None:
+        model, state = scene.model, scene.state
+        work = model.scratch.coupling_work
+        nn = model.coupling.needle_node_count
+        x = strand_now(scene)
+        q = state.tissue.particle_q
+        rows = np.flatnonzero(work.row_kind == ROW_PATH)
+        if rows.size:
+            p = np.einsum("ik,ikj->ij", work.row_weight[rows], q[work.row_tissue[rows]])
+            residual = np.linalg.norm(np.cross(x[rows] - p, work.row_tangent[rows]), axis=1)
+            needle_rows = rows < nn
+            if needle_rows.any():
+                self.path_needle = max(self.path_needle, float(residual[needle_rows].max()))
+            if (~needle_rows).any():
+                worst = float(residual[~needle_rows].max())
+                self.path_suture = max(self.path_suture, worst)
+                self.path_suture_samples.append(worst)
+        for a in range(work.access_count):
+            b = access_point(model.coupling, q, work.access_tri[a], work.access_bary[a])
+            lo, hi = int(work.access_node[a, 0]), int(work.access_node[a, 3])
+            seg_a, seg_b = x[lo:hi], x[lo + 1 : hi + 1]
+            e = seg_b - seg_a
+            u = np.clip(np.einsum("ij,ij->i", b - seg_a, e) / np.einsum("ij,ij->i", e, e), 0.0, 1.0)
+            d = float(np.linalg.norm(seg_a + u[:, None] * e - b, axis=1).min())
+            self.access = max(self.access, d)
+            self.access_samples.append(d)
+        suture_nodes = x[nn:]
+        status = state.coupling.strand_status[nn:]
+        self.suture_in_nodes_max = max(self.suture_in_nodes_max, int(np.count_nonzero(status == NODE_IN)))
+        free = status != NODE_IN
+        if free.any():
+            sdist, _, _ = signed_distance(suture_nodes[free], model.coupling.surface, q)
+            self.outside_depth = max(self.outside_depth, float(max(0.0, -sdist.min())))
+            self.inside_nodes += int(np.count_nonzero(sdist < 0.0))
+
+
+def stitch_settings(scene: Scene, controller: StitchController, duration: float, solver: Solver) -> dict:
+    return {
+        "scene": scene.settings,
+        "controller": controller.settings(),
+        "duration_s": duration,
+        "dt_s": DT,
+        "solver": asdict(solver),
+        "gap_window_m": GAP_WINDOW,
+    }
+
+
+STITCH_PULL_TIME = 3.0  # s of pulling after the turn
+
+
+@functools.lru_cache(maxsize=1)
+def _stitch_run() -> tuple[dict, dict, dict]:
+    """The default stitch with residual probes (run once, shared by the stitch checks)."""
+    scene = two_bar_suturing()
+    controller = StitchController(scene.model.needle, np.array(scene.settings["arc_center_m"]))
+    solver = Solver()
+    duration = controller.turn_time + STITCH_PULL_TIME
+    probe = _StitchProbe()
+    run = run_stitch(scene, controller, duration, solver, probe)
+    state = scene.state.coupling
+    result = {
+        **run,
+        "punctures": int(state.punctures),
+        "paths": int(state.path_count),
+        "damaged": bool(state.damaged),
+        "overflow": bool(state.overflow),
+        "path_residual_needle_max_m": probe.path_needle,
+        "path_residual_suture_max_m": probe.path_suture,
+        "path_residual_suture_p99_m": float(np.percentile(probe.path_suture_samples, 99))
+        if probe.path_suture_samples
+        else 0.0,
+        "access_residual_max_m": probe.access,
+        "access_residual_p99_m": float(np.percentile(probe.access_samples, 99)) if probe.access_samples else 0.0,
+        "suture_outside_depth_max_m": probe.outside_depth,
+        "suture_inside_node_samples": probe.inside_nodes,
+        "suture_nodes_in_paths_max": probe.suture_in_nodes_max,
+    }
+    timings = run.pop("timings_s")
+    result["timings_s"] = timings
+    return result, stitch_settings(scene, controller, duration, solver), {"needle_nodes": scene.model.needle.node_count}
+
+
+@check("node_path_residual")
+def check_node_path_residual() -> CheckResult:
+    """Largest distance of a strand node from its path line, ``|(p - q) x t|`` (eq. 1), at the end of any
+    substep of the scripted stitch (both bites and the pull), for needle and suture nodes; bound 0.5 mm."""
+    run, settings, _ = _stitch_run()
+    measured = max(run["path_residual_needle_max_m"], run["path_residual_suture_max_m"])
+    return CheckResult(
+        name="node_path_residual",
+        measured=measured,
+        reference=0.0,
+        tolerance=5e-4,
+        unit="m",
+        comparison="<=",
+        settings=settings,
+        details={k: v for k, v in run.items() if k != "timings_s"},
+    )
+
+
+@check("access_point_residual")
+def check_access_point_residual() -> CheckResult:
+    """Largest distance from an access point to the strand piece through it (eq. 3), at the end of any substep
+    of the scripted stitch; bound 0.5 mm."""
+    run, settings, _ = _stitch_run()
+    return CheckResult(
+        name="access_point_residual",
+        measured=run["access_residual_max_m"],
+        reference=0.0,
+        tolerance=5e-4,
+        unit="m",
+        comparison="<=",
+        settings=settings,
+        details={k: v for k, v in run.items() if k != "timings_s"},
+    )
+
+
+@check("suture_outside_tissue")
+def check_suture_outside_tissue() -> CheckResult:
+    """Deepest a suture node not matched to a path is inside the tissue at the end of any substep of the
+    scripted stitch (fresh signed distance to the deformed surface); bound 0.5 mm (the resistance layer is
+    0.3 mm). The details say how many suture nodes were inside paths at most (the thread did go through)."""
+    run, settings, _ = _stitch_run()
+    return CheckResult(
+        name="suture_outside_tissue",
+        measured=run["suture_outside_depth_max_m"],
+        reference=0.0,
+        tolerance=5e-4,
+        unit="m",
+        comparison="<=",
+        settings=settings,
+        details={k: v for k, v in run.items() if k != "timings_s"},
+    )
+
+
+# ---------------------------------------------------------------------------------------------------------
+# Puncture threshold sweep
+# ---------------------------------------------------------------------------------------------------------
+
+SWEEP_FACTORS = (0.5, 0.7, 0.9, 0.95, 1.05, 1.1, 1.5, 2.0)
+SWEEP_YOUNGS = 1.0e3  # Pa: the paper's (and the scenes') tissue
+SWEEP_THRESHOLD = 0.05  # N: the puncture force for this tissue (1 N would dent it by centimetres)
+SWEEP_DT = DT
+SWEEP_RAMP = 0.5  # s
+SWEEP_GAP = 0.02  # m: the needle's swage end hangs over the gap, so only the tip touches the tissue
+SWEEP_ARC_CENTER = np.array([0.015, 0.02, 0.0153])  # m: tip 3.3 mm inside bar A's wound edge, at eps above it
+SWEEP_DAMPING = 1.0  # N s/m, vertical damping of the push (quasi-static loading, no impact)
+SWEEP_HOLD = 0.4  # s
+
+
+def _push(force: float, params: CouplingParams, youngs: float, dt: float = SWEEP_DT) -> dict:
+    """Push the needle tip straight down onto bar A with a force ramped to ``force`` N, then held. Bars of
+    3 x 1.5 x 1.5 cm with a 2 cm gap over which the rest of the needle hangs.
+
+    The tip starts at the surface; the push acts at the tip (the force at the grip plus the moment
+    ``(tip - grip) x F``, with a vertical damping of the tip's velocity), so the tip's contact does not turn the
+    needle and the load is quasi-static; a virtual coupling holds the needle's lateral position and
+    orientation.
+    """
+    base = two_bar_wound(
+        bar_size=(0.03, 0.015, 0.015), cells=(6, 3, 3), gap=SWEEP_GAP, material=TissueMaterial(youngs_modulus=youngs)
+    )
+    needle = NeedleModel.from_shape()
+    scene = add_strands(
+        base,
+        needle_arc_pose(needle, SWEEP_ARC_CENTER, 0.0),
+        suture_params=SutureParams(length=0.02, node_count=21),
+        suture_direction=(0.0, 0.0, 1.0),
+        coupling_params=params,
+    )
+    model, state = scene.model, scene.state
+    needle = model.needle
+    hold = VirtualCoupling()
+    grip = state.needle.body_pos + quat_to_matrix(state.needle.body_quat) @ needle.grip_pos_body
+    quat = state.needle.body_quat.copy()
+    solver, control = Solver(), Control()
+    peak = 0.0
+    steps = int(round((SWEEP_RAMP + SWEEP_HOLD) / dt))
+    for k in range(steps):
+        push = np.array([0.0, 0.0, -force * min(1.0, k * dt / SWEEP_RAMP)])
+        w = hold.wrench(needle, state.needle, grip, quat)
+        tip_from_grip = quat_to_matrix(state.needle.body_quat) @ (needle.tip_pos_body - needle.grip_pos_body)
+        push[2] -= SWEEP_DAMPING * needle_point_velocity(needle, state.needle, needle.tip_pos_body)[2]
+        control.needle_wrench = np.concatenate([[w[0], w[1], push[2]], w[3:] + np.cross(tip_from_grip, push)])
+        solver.step(model, state, control, dt)
+        peak = max(peak, state.coupling.tip_force)
+        if state.diverged:
+            break
+    return {
+        "push_force_n": force,
+        "pierced": bool(state.coupling.punctures > 0),
+        "peak_tip_force_n": peak,
+        "diverged": bool(state.diverged),
+    }
+
+
+@check("puncture_threshold_sweep")
+def check_puncture_threshold_sweep() -> CheckResult:
+    """Tip pushed straight onto the default 1 kPa tissue by forces from 0.5x to 2x the puncture threshold
+    (0.05 N here), ramped over 0.5 s and held 0.4 s: it must pierce iff the push exceeds the threshold.
+    Measured: the number of misclassified (or diverged) pushes, reference 0."""
+    params = CouplingParams(puncture_force=SWEEP_THRESHOLD)
+    runs = [_push(f * params.puncture_force, params, SWEEP_YOUNGS) for f in SWEEP_FACTORS]
+    wrong = sum(
+        run["pierced"] != (factor > 1.0) or run["diverged"] for run, factor in zip(runs, SWEEP_FACTORS, strict=True)
+    )
+    return CheckResult(
+        name="puncture_threshold_sweep",
+        measured=float(wrong),
+        reference=0.0,
+        tolerance=0.0,
+        unit="misclassified pushes",
+        settings={
+            "factors": list(SWEEP_FACTORS),
+            "coupling": asdict(params),
+            "youngs_modulus_pa": SWEEP_YOUNGS,
+            "ramp_s": SWEEP_RAMP,
+            "hold_s": SWEEP_HOLD,
+            "dt_s": SWEEP_DT,
+            "push_damping_n_s_m": SWEEP_DAMPING,
+            "scene": {
+                "bar_size_m": [0.03, 0.015, 0.015],
+                "cells": [6, 3, 3],
+                "gap_m": SWEEP_GAP,
+                "arc_center_m": SWEEP_ARC_CENTER.tolist(),
+                "suture": "2 cm, 21 nodes, free",
+            },
+        },
+        details={"runs": runs},
+    )
+
+
+# ---------------------------------------------------------------------------------------------------------
+# Tip force profile
+# ---------------------------------------------------------------------------------------------------------
+
+
+@check("tip_force_profile")
+def check_tip_force_profile() -> CheckResult:
+    """Forces over one bite of the scripted stitch (bar A): the tip's contact force rises to the puncture
+    threshold and drops to zero at the puncture; then the axial friction grows with the inserted length.
+
+    Measured: the slope of the total axial friction force against the inserted needle length while the tip is
+    inside bar A (least squares), which should equal ``needle_axial_friction`` (N/m) when the needle slides:
+    reference that parameter, tolerance 25%. The details give the peak tip force, the force after puncture and
+    the friction at several depths."""
+    scene = two_bar_suturing()
+    params = scene.model.coupling.params
+    controller = StitchController(scene.model.needle, np.array(scene.settings["arc_center_m"]))
+    samples: list[tuple] = []
+
+    def probe(s: Scene, t: float) -> None:
+        c = s.state.coupling
+        inside = c.punctured
+        depth = float(c.path_sigma_entry[c.path_count - 1]) if inside else 0.0
+        samples.append((t, c.tip_force, c.friction_force, inside, depth, c.path_count))
+
+    run_stitch(scene, controller, 2.0, probe=probe)
+    data = np.array(samples, dtype=float)
+    t, tip, friction, inside, depth, paths = data.T
+    first_in = int(np.argmax(inside > 0))
+    first_bite = (paths == 1) & (inside > 0)
+    exit_index = first_in + int(np.argmax(~first_bite[first_in:]))
+    peak_before = float(tip[:first_in].max())
+    settle = first_bite & (depth > 2e-3)  # after the first 2 mm, the needle slides
+    slope, intercept = np.polyfit(depth[settle], friction[settle], 1)
+    quartiles = np.quantile(depth[settle], [0.25, 0.5, 0.75, 1.0])
+    friction_at = {f"{d * 1e3:.1f}mm": float(np.interp(d, depth[settle], friction[settle])) for d in quartiles}
+    return CheckResult(
+        name="tip_force_profile",
+        measured=float(slope),
+        reference=params.needle_axial_friction,
+        tolerance=0.25,
+        unit="N/m",
+        comparison="rel",
+        settings={"scene": scene.settings, "controller": controller.settings(), "dt_s": DT, "duration_s": 2.0},
+        details={
+            "puncture_force_n": params.puncture_force,
+            "peak_tip_force_before_puncture_n": peak_before,
+            "tip_force_after_puncture_n": float(tip[first_in : first_in + 20].max()),
+            "puncture_time_s": float(t[first_in]),
+            "exit_time_s": float(t[exit_index]),
+            "friction_fit_intercept_n": float(intercept),
+            "friction_at_depth_n": friction_at,
+            "max_inserted_length_m": float(depth[first_bite].max()),
+        },
+    )
+
+
+# ---------------------------------------------------------------------------------------------------------
+# Benchmark
+# ---------------------------------------------------------------------------------------------------------
+
+
+BENCH_PUNCTURE_FORCE = 0.008  # N: the 3 cm tall bar B of this scale gives way more than the small scene's
+
+
+@benchmark("paper_cube")
+def bench_paper_cube() -> dict:
+    """The paper's Table 1 row 1 scale with strands: two 9.5 x 3 x 3 cm bars (6840 tets, 1960 particles), the
+    30-node needle and a 200-node, 20 cm suture. The needle is first driven through both wound edges by the
+    scripted stitch (turn rate 2 rad/s, puncture force 0.008 N), then, pulling the thread, substeps are
+    timed: median wall time and the fractions spent in detection (broad phase, signed distances, paths, rows)
+    and in projection. ``paths`` and ``suture_nodes_in_paths`` show that the thread is through both bites."""
+    scene = two_bar_suturing(
+        bar_size=(0.095, 0.03, 0.03),
+        cells=(19, 6, 6),
+        centre_height=0.002,
+        suture_params=SutureParams(),
+        suture_direction=(0.0, -1.0, 0.3),
+        coupling_params=CouplingParams(puncture_force=BENCH_PUNCTURE_FORCE, needle_axial_friction=0.5),
+    )
+    controller = StitchController(scene.model.needle, np.array(scene.settings["arc_center_m"]), turn_rate=2.0)
+    solver = Solver()
+    run_stitch(scene, controller, controller.turn_time)
+    control = Control()
+    samples = 300
+    step_times = np.empty(samples)
+    phase = {name: np.empty(samples) for name in PHASES}
+    t0_sim = controller.turn_time
+    for i in range(samples):
+        timings: dict = {}
+        control.needle_wrench = controller.wrench(t0_sim + i * DT, scene.state)
+        start = time.perf_counter()
+        solver.step(scene.model, scene.state, control, DT, timings=timings)
+        step_times[i] = time.perf_counter() - start
+        for name in PHASES:
+            phase[name][i] = timings.get(name, 0.0)
+    substep = float(np.median(step_times))
+    total = step_times.sum()
+    coupling = scene.state.coupling
+    tissue = scene.model.tissue
+    return {
+        "tets": tissue.tet_count,
+        "particles": tissue.particle_count,
+        "strand_nodes": scene.model.coupling.strand_node_count,
+        "substep_ms": substep * 1e3,
+        "substeps_per_s": 1.0 / substep,
+        "collision_fraction": float(phase["detect"].sum() / total),
+        "solver_fraction": float(phase["project"].sum() / total),
+        "substep_ms_p90": float(np.percentile(step_times, 90)) * 1e3,
+        "phase_ms_median": {name: float(np.median(v)) * 1e3 for name, v in phase.items()},
+        "paths": int(coupling.path_count),
+        "suture_nodes_in_paths": int(
+            np.count_nonzero(coupling.strand_status[scene.model.needle.node_count :] == NODE_IN)
+        ),
+        "diverged": bool(scene.state.diverged),
+        "dt_s": DT,
+        "solver": asdict(solver),
+        "puncture_force_n": BENCH_PUNCTURE_FORCE,
+    }

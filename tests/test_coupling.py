@@ -1,0 +1,517 @@
+"""Needle/suture-tissue coupling (paper section 4): constraint maths, rigid helpers, path spacing, matching,
+access points, release, snapshots and determinism of the detection. No solver here (see test_suturing.py)."""
+
+import math
+
+import numpy as np
+import pytest
+
+from suture_gym.sim.coupling import (
+    NODE_HEAD,
+    NODE_IN,
+    NODE_OUT,
+    ROW_NONE,
+    ROW_PATH,
+    ROW_TRIANGLE,
+    CouplingModel,
+    CouplingParams,
+    CouplingState,
+    CouplingWork,
+    access_point,
+    coupling_detect,
+    node_access_constraint,
+    node_path_constraint,
+    node_triangle_constraint,
+    path_spacing_count,
+    project_onto_path,
+    project_particles,
+    rigid_apply,
+    rigid_generalized_inv_mass,
+    track_sigma,
+    xpbd_delta_lambda,
+)
+from suture_gym.sim.mesh import box_tet_grid
+from suture_gym.sim.model import TissueMaterial, TissueModel
+from suture_gym.sim.needle import NeedleModel, NeedleState, apply_point_impulse, point_inv_mass, world_inv_inertia
+from suture_gym.sim.quat import quat_from_axis_angle, quat_mul, quat_to_matrix
+from suture_gym.sim.rod import RodModel, SutureParams
+
+RNG = np.random.default_rng(7)
+H = 1e-7  # central-difference step, m
+
+
+def _fd_gradient(fn, x, h=H):
+    g = np.zeros_like(x)
+    for i in np.ndindex(x.shape):
+        xp = x.copy()
+        xm = x.copy()
+        xp[i] += h
+        xm[i] -= h
+        g[i] = (fn(xp) - fn(xm)) / (2 * h)
+    return g
+
+
+# --- parameters -------------------------------------------------------------------------------------------
+
+
+@pytest.mark.parametrize(
+    "field, value",
+    [
+        ("puncture_force", 0.0),
+        ("puncture_force", math.nan),
+        ("resistance_eps", -1e-3),
+        ("path_spacing_min", math.inf),
+        ("tear_force", "big"),
+        ("needle_axial_friction", -1.0),
+        ("max_paths", 0),
+        ("max_path_nodes", 2.5),
+    ],
+)
+def test_bad_params_are_named(field, value):
+    with pytest.raises(ValueError, match=f"CouplingParams.{field}"):
+        CouplingParams(**{field: value})
+
+
+def test_spacing_order_is_checked():
+    with pytest.raises(ValueError, match="path_spacing_min"):
+        CouplingParams(path_spacing_min=2e-3, path_spacing_max=1e-3)
+
+
+# --- constraint maths -------------------------------------------------------------------------------------
+
+
+def _triangle():
+    p = np.array([[0.0, 0.0, 0.0], [0.01, 0.001, 0.0], [0.002, 0.012, 0.001]]) + RNG.normal(0, 1e-4, (3, 3))
+    return p
+
+
+def test_node_triangle_value_and_gradient_match_finite_differences():
+    p = _triangle()
+    eps = 3e-4
+    q = (0.3 * p[0] + 0.3 * p[1] + 0.4 * p[2]) + np.array([1e-4, -2e-4, 5e-4])
+    x = np.vstack([q[None], p])
+
+    def c_of(xx):
+        return node_triangle_constraint(xx[0], xx[1], xx[2], xx[3], eps)[1]
+
+    ok, c, n, b = node_triangle_constraint(q, p[0], p[1], p[2], eps)
+    assert ok
+    nrm = np.cross(p[1] - p[0], p[2] - p[0])
+    assert c == pytest.approx((q - p[0]) @ nrm / np.linalg.norm(nrm) - eps, abs=1e-15)
+    grad = np.vstack([n[None], -b[:, None] * n[None]])
+    np.testing.assert_allclose(grad, _fd_gradient(c_of, x), atol=1e-7)
+    assert b.sum() == pytest.approx(1.0) and np.all(b >= 0)
+
+
+def test_node_triangle_outside_projection_uses_closest_point_weights():
+    p = _triangle()
+    q = p[1] + np.array([0.01, 0.0, 0.002])  # projects beyond vertex 1
+    ok, c, n, b = node_triangle_constraint(q, p[0], p[1], p[2], 0.0)
+    assert ok and np.all(b >= 0) and b.sum() == pytest.approx(1.0)
+
+
+def test_node_triangle_degenerate_returns_early():
+    p = np.array([[0.0, 0, 0], [1e-3, 0, 0], [2e-3, 0, 0]])
+    ok, c, n, b = node_triangle_constraint(np.array([0.0, 0, 1e-3]), p[0], p[1], p[2], 0.0)
+    assert not ok and c == 0.0 and not n.any()
+
+
+def test_node_path_value_and_gradient_match_finite_differences():
+    t = np.array([0.3, -0.2, 0.9])
+    t /= np.linalg.norm(t)
+    tet = RNG.normal(0, 3e-3, (4, 3))
+    w = np.array([0.1, 0.2, 0.3, 0.4])
+    q = w @ tet + np.array([1e-3, 2e-3, -5e-4])
+    x = np.vstack([q[None], tet])
+
+    def c_of(xx):
+        return node_path_constraint(xx[0], w @ xx[1:], t)[1]
+
+    ok, c, n = node_path_constraint(q, w @ tet, t)
+    assert ok
+    assert c == pytest.approx(np.linalg.norm(np.cross(w @ tet - q, t)), rel=1e-12)
+    grad = np.vstack([n[None], -w[:, None] * n[None]])
+    np.testing.assert_allclose(grad, _fd_gradient(c_of, x), atol=1e-7)
+    assert abs(n @ t) < 1e-12
+
+
+def test_node_path_on_the_line_gives_no_correction():
+    t = np.array([0.0, 0.0, 1.0])
+    ok, c, n = node_path_constraint(np.array([1.0, 2.0, 7.0]), np.array([1.0, 2.0, 3.0]), t)
+    assert not ok and c == 0.0
+
+
+def test_node_access_value_and_gradient_match_finite_differences():
+    pa = np.array([0.0, 0.0, 1e-3])
+    pb = np.array([1e-3, 2e-4, -5e-4])
+    b = np.array([4e-4, 3e-4, 2e-4])
+    rest = float(np.linalg.norm(pb - pa))
+    x = np.vstack([pa, pb, b])
+
+    def c_of(xx):
+        return node_access_constraint(xx[0], xx[1], xx[2], rest)[1]
+
+    ok, c, ga, gb = node_access_constraint(pa, pb, b, rest)
+    assert ok and c > 0
+    grad = np.vstack([ga, gb, -(ga + gb)])
+    np.testing.assert_allclose(grad, _fd_gradient(c_of, x), atol=1e-7)
+
+
+def test_node_access_is_zero_when_the_segment_passes_through_the_access_point():
+    pa = np.array([0.0, 0.0, 1e-3])
+    pb = np.array([1e-3, 2e-4, -5e-4])
+    b = pa + 0.37 * (pb - pa)
+    ok, c, ga, gb = node_access_constraint(pa, pb, b, float(np.linalg.norm(pb - pa)))
+    assert ok and abs(c) < 1e-18
+    assert not node_access_constraint(pa, pb, pa.copy(), 1e-3)[0]
+
+
+@pytest.mark.parametrize("kind", ["triangle", "path", "access"])
+def test_particle_projection_conserves_momentum_and_reduces_the_violation(kind):
+    mass = RNG.uniform(1e-5, 1e-3, 5)
+    if kind == "triangle":
+        p = _triangle()
+        q = (0.2 * p[0] + 0.5 * p[1] + 0.3 * p[2]) - 4e-4 * np.cross(p[1] - p[0], p[2] - p[0]) / np.linalg.norm(
+            np.cross(p[1] - p[0], p[2] - p[0])
+        )
+        x = np.vstack([q[None], p])
+        m = mass[:4]
+
+        def evaluate(xx):
+            ok, c, n, b = node_triangle_constraint(xx[0], xx[1], xx[2], xx[3], 0.0)
+            return c, np.vstack([n[None], -b[:, None] * n[None]])
+
+    elif kind == "path":
+        t = np.array([0.0, 0.6, 0.8])
+        tet = RNG.normal(0, 3e-3, (4, 3))
+        w = np.array([0.25, 0.25, 0.3, 0.2])
+        x = np.vstack([(w @ tet + [1e-3, 0, 0])[None], tet])
+        m = mass
+
+        def evaluate(xx):
+            ok, c, n = node_path_constraint(xx[0], w @ xx[1:], t)
+            return c, np.vstack([n[None], -w[:, None] * n[None]])
+
+    else:
+        tri = _triangle()
+        bary = np.array([0.2, 0.3, 0.5])
+        b = bary @ tri
+        pa = b + np.array([1e-3, 1e-3, 1e-3])
+        pb = b + np.array([-1e-3, 2e-3, -1e-3])
+        rest = float(np.linalg.norm(pb - pa)) * 0.999
+        x = np.vstack([pa, pb, tri])
+        m = mass
+
+        def evaluate(xx):
+            ok, c, ga, gb = node_access_constraint(xx[0], xx[1], bary @ xx[2:], rest)
+            gs = -(ga + gb)
+            return c, np.vstack([ga, gb, bary[:, None] * gs[None]])
+
+    c0, grads = evaluate(x)
+    lam = 0.0
+    history = [abs(c0)]
+    c = c0
+    for _ in range(4):  # repeated projections of the linearised constraint converge (Newton-like)
+        dlam, dx = project_particles(c, grads, 1.0 / m, 0.0, lam)
+        np.testing.assert_allclose((m[:, None] * dx).sum(axis=0), 0.0, atol=1e-15)
+        lam += dlam
+        x = x + dx
+        c, grads = evaluate(x)
+        history.append(abs(c))
+    assert history[1] < 0.1 * history[0]
+    assert all(b <= a + 1e-15 for a, b in zip(history, history[1:], strict=False))
+    assert history[-1] < 1e-6 * history[0]
+
+
+def test_satisfied_constraints_give_zero_correction():
+    dlam, dx = project_particles(0.0, np.ones((3, 3)), np.ones(3), 0.0, 0.0)
+    assert dlam == 0.0 and not dx.any()
+    assert xpbd_delta_lambda(1.0, 0.0, 0.0, 0.0) == 0.0  # nothing can move
+
+
+# --- rigid helpers ----------------------------------------------------------------------------------------
+
+
+def test_rigid_inverse_mass_matches_needle_point_inverse_mass_and_finite_differences():
+    model = NeedleModel.from_shape()
+    quat = quat_from_axis_angle(np.array([0.3, 1.0, -0.2]), 0.7)
+    inv_i = world_inv_inertia(quat, model.body_inv_inertia)
+    r = np.array([3e-3, -2e-3, 1e-3])
+    n = np.array([0.0, 0.6, 0.8])
+    w = rigid_generalized_inv_mass(model.body_inv_mass, inv_i, n, np.cross(r, n))
+    assert w == pytest.approx(point_inv_mass(model.body_inv_mass, inv_i, r, n), rel=1e-12)
+    # a small impulse along n moves the point along n by w times the impulse (first order)
+    pos = np.zeros(3)
+    q = quat.copy()
+    impulse = 1e-9
+    rigid_apply(pos, q, model.body_inv_mass, inv_i, n, np.cross(r, n), impulse)
+    moved = pos + quat_to_matrix(q) @ (quat_to_matrix(quat).T @ r) - r
+    assert moved @ n == pytest.approx(w * impulse, rel=1e-6)
+    pos_ref, quat_ref = apply_point_impulse(np.zeros(3), quat, model.body_inv_mass, inv_i, r, impulse * n)
+    np.testing.assert_allclose(pos, pos_ref, atol=1e-20)
+    np.testing.assert_allclose(q, quat_ref, atol=1e-15)
+
+
+# --- path spacing, tracking, projection -------------------------------------------------------------------
+
+
+@pytest.mark.parametrize(
+    "d, expected",
+    [
+        (0.0, 0),
+        (1.19e-3, 0),
+        (1.2e-3, 1),
+        (1.5e-3, 1),
+        (1.7e-3, 1),
+        (1.71e-3, 1),
+        (3.4e-3, 2),
+        (3.5e-3, 2),
+        (6.0e-3, 3),
+    ],
+)
+def test_path_spacing_rule(d, expected):
+    assert path_spacing_count(d, 1.2e-3, 1.7e-3) == expected
+
+
+def test_track_sigma_finds_the_crossing_near_the_previous_coordinate():
+    # a U-shaped strand: down along x = 0 and back up along x = 1 cm; both legs pass y = 0
+    s = np.linspace(0, 1, 41)
+    leg1 = np.stack([np.zeros(21), np.zeros(21), -0.01 * s[:21] * 2], axis=1)
+    leg2 = np.stack([0.01 * np.ones(20), np.zeros(20), -0.01 + 0.01 * (s[21:] - 0.5) * 2], axis=1)
+    strand = np.vstack([leg1, leg2])
+    sigma = np.concatenate([[0.0], np.cumsum(np.linalg.norm(np.diff(strand, axis=0), axis=1))])
+    target = np.array([0.005, 0.0, -0.004])  # equidistant from both legs
+    total = sigma[-1]
+    s1, d1 = track_sigma(strand, sigma, target, 0.004, 0.004, 0.0, total)
+    s2, d2 = track_sigma(strand, sigma, target, total - 0.004, 0.004, 0.0, total)
+    assert s1 == pytest.approx(0.004, abs=1e-12) and d1 == pytest.approx(0.005)
+    assert s2 > sigma[21] and d2 == pytest.approx(0.005)
+    s3, _ = track_sigma(strand, sigma, np.array([0.0, 1e-4, -0.0031]), 0.003, 0.002, 0.0, total)
+    assert s3 == pytest.approx(0.0031, abs=1e-12)
+
+
+def test_track_sigma_bounds_keep_the_coordinate_off_another_branch():
+    # a hairpin: the return leg passes 0.2 mm from the target, the leg being tracked 0.5 mm from it
+    leg1 = np.stack([np.zeros(11), np.linspace(0.0, 0.01, 11), np.zeros(11)], axis=1)
+    leg2 = np.stack([np.full(11, 7e-4), np.linspace(0.01, 0.0, 11), np.zeros(11)], axis=1)
+    strand = np.vstack([leg1, leg2])
+    sigma = np.concatenate([[0.0], np.cumsum(np.linalg.norm(np.diff(strand, axis=0), axis=1))])
+    target = np.array([5e-4, 0.005, 0.0])
+    free, d_free = track_sigma(strand, sigma, target, 0.005, 0.02, 0.0, sigma[-1])
+    assert free > sigma[10] and d_free == pytest.approx(2e-4)  # unbounded, it jumps to the return leg
+    bounded, d = track_sigma(strand, sigma, target, 0.005, 0.02, 0.0, sigma[10])
+    assert bounded == pytest.approx(0.005) and d == pytest.approx(5e-4)
+    windowed, _ = track_sigma(strand, sigma, target, 0.005, 0.002, 0.0, sigma[-1])
+    assert windowed == pytest.approx(0.005)
+
+
+def test_project_onto_path_extends_closed_ends_and_leaves_the_open_tip_free():
+    pq = np.array([[0.0, 0, 0], [1e-3, 0, 0], [2e-3, 0, 0]])
+    tan = np.tile([1.0, 0, 0], (3, 1))
+    ok, slot, u = project_onto_path(np.array([1.5e-3, 1e-4, 0]), 0, 3, pq, tan, False)
+    assert ok and slot == 1 and u == pytest.approx(0.5)
+    ok, slot, u = project_onto_path(np.array([3e-3, 1e-4, 0]), 0, 3, pq, tan, False)
+    assert ok and slot == 1 and u == 1.0
+    ok, _, _ = project_onto_path(np.array([3e-3, 1e-4, 0]), 0, 3, pq, tan, True)
+    assert not ok
+    assert not project_onto_path(np.zeros(3), 0, 1, pq, tan, False)[0]
+
+
+# --- detection with a kinematic needle through a block -----------------------------------------------------
+
+BLOCK = (0.03, 0.02, 0.02)  # m
+CENTRE_HEIGHT = 0.002  # m, needle circle centre above the top face
+# Body orientation: shape x -> world -y, shape y -> world +z, shape z -> world -x. The tip starts on the -y
+# side pointing down and drives forward as the needle turns about world +x.
+Q0 = np.array([0.5, 0.5, -0.5, -0.5])
+
+
+def _block_tissue():
+    mesh = box_tet_grid(BLOCK, (6, 4, 4))
+    return TissueModel.from_mesh(mesh, TissueMaterial())
+
+
+def _needle_pose(model: NeedleModel, angle: float):
+    quat = quat_mul(quat_from_axis_angle(np.array([1.0, 0.0, 0.0]), angle), Q0)
+    centre = np.array([0.5 * BLOCK[0], 0.5 * BLOCK[1], BLOCK[2] + CENTRE_HEIGHT])
+    pos = centre - quat_to_matrix(quat) @ model.arc_center_body
+    return NeedleState.at_rest(pos, quat)
+
+
+def _strand(model: NeedleModel, state: NeedleState) -> np.ndarray:
+    return state.body_pos + model.node_pos_body @ quat_to_matrix(state.body_quat).T
+
+
+def test_orientation_convention_of_the_kinematic_needle():
+    needle = NeedleModel.from_shape()
+    state = _needle_pose(needle, 0.0)
+    x = _strand(needle, state)
+    radius = needle.shape.curvature_radius
+    np.testing.assert_allclose(x[0], [0.015, 0.01 - radius, BLOCK[2] + CENTRE_HEIGHT], atol=1e-12)
+    state = _needle_pose(needle, 0.1)
+    assert _strand(needle, state)[0, 2] < BLOCK[2] + CENTRE_HEIGHT  # the tip goes down
+
+
+def _sweep(params=None, angles=None):
+    """Turn a needle (no suture) through the block and run the detection each step; the tip force is set
+    above the threshold while the tip has a node-triangle row and is within eps of the surface (standing in
+    for the solver's reading of that row's force)."""
+    tissue = _block_tissue()
+    needle = NeedleModel.from_shape()
+    model = CouplingModel.build(tissue, needle, None, params or CouplingParams())
+    state = CouplingState.empty(model)
+    work = CouplingWork(model)
+    q = tissue.particle_rest_q.copy()
+    log = []
+    for angle in angles:
+        ns = _needle_pose(needle, angle)
+        x = _strand(needle, ns)
+        pressing = work.row_kind[0] == ROW_TRIANGLE and state.strand_sdist[0] < model.params.resistance_eps
+        state.tip_force = 2.0 * model.params.puncture_force if pressing else 0.0
+        coupling_detect(model, state, work, tissue, q, x)
+        log.append(
+            (
+                angle,
+                state.copy(),
+                x.copy(),
+                {k: np.array(getattr(work, k)) for k in ("row_kind", "access_node", "access_weight", "access_rest")},
+                work.access_count,
+            )
+        )
+    return model, tissue, q, log
+
+
+def test_puncture_path_growth_exit_and_release_by_a_sweeping_needle():
+    angles = np.linspace(0.0, 2 * math.pi - 0.1, 700)  # the swage leaves at 2 pi - 0.24
+    model, tissue, q, log = _sweep(angles=angles)
+    params = model.params
+    counts = [s.path_count for _, s, *_ in log]
+    punctures = [s.punctures for _, s, *_ in log]
+    assert max(punctures) == 1  # one bite
+    first = counts.index(1)
+    angle, state, x, _, _ = log[first]
+    # the entry access point is the tip's closest surface point, on the top face
+    entry = access_point(model, q, state.path_entry_tri[0], state.path_entry_bary[0])
+    assert entry[2] == pytest.approx(BLOCK[2], abs=1e-12)
+    assert np.linalg.norm(entry - x[0]) < 1e-3
+    # the path is open and grows while the tip cuts; the exit closes it on the top face again
+    closed = next(i for i, (_, s, *_) in enumerate(log) if s.path_count == 1 and not s.path_open[0])
+    _, state, x, _, _ = log[closed]
+    exit_point = access_point(model, q, state.path_exit_tri[0], state.path_exit_bary[0])
+    assert exit_point[2] == pytest.approx(BLOCK[2], abs=1e-12)
+    assert exit_point[1] > entry[1] + 0.01
+    n = state.path_len[0]
+    assert n >= 10
+    nodes = np.array([state.pathnode_bary[s] @ q[tissue.tet_indices[state.pathnode_tet[s]]] for s in range(n)])
+    spacing = np.linalg.norm(np.diff(nodes, axis=0), axis=1)
+    # interior spacing within [l, 2h) (one node per step of at least l; the exit node may be closer)
+    assert np.all(spacing[:-1] >= params.path_spacing_min - 1e-12)
+    assert np.all(spacing < 2 * params.path_spacing_max)
+    # every path node lies on the needle's circle
+    centre = np.array([0.5 * BLOCK[0], 0.5 * BLOCK[1], BLOCK[2] + CENTRE_HEIGHT])
+    radius = NeedleModel.from_shape().shape.curvature_radius
+    np.testing.assert_allclose(np.linalg.norm(nodes[1:-1] - centre, axis=1), radius, atol=2e-5)
+    # later the whole needle has passed through: the path is released
+    assert counts[-1] == 0 and max(counts) == 1
+
+
+def test_matching_states_and_rows_while_the_needle_is_through():
+    angles = np.linspace(0.0, 2.2, 300)
+    model, tissue, q, log = _sweep(angles=angles)
+    angle, state, x, rows, access_count = log[-1]
+    assert state.path_count == 1 and state.path_open[0]  # the tip is still inside
+    sigma = model.strand_sigma
+    inside = sigma < state.path_sigma_entry[0]
+    assert state.strand_status[0] == NODE_HEAD
+    assert np.all(state.strand_status[1:][inside[1:]] == NODE_IN)
+    assert np.all(state.strand_status[~inside] == NODE_OUT)
+    # the strand coordinate at the entry is where the needle crosses the top face
+    entry = access_point(model, q, state.path_entry_tri[0], state.path_entry_bary[0])
+    j = int(np.searchsorted(sigma, state.path_sigma_entry[0]) - 1)
+    assert x[j, 2] <= BLOCK[2] + 1e-9 <= x[j + 1, 2] + 2e-9 or x[j + 1, 2] <= BLOCK[2] + 1e-9 <= x[j, 2] + 2e-9
+    s_frac = (state.path_sigma_entry[0] - sigma[j]) / (sigma[j + 1] - sigma[j])
+    assert np.linalg.norm(x[j] + s_frac * (x[j + 1] - x[j]) - entry) < 1e-4
+    # rows: IN nodes behind the last path node are held on the path, the HEAD has none, the access
+    # segment is the one holding sigma_entry
+    kinds = rows["row_kind"]
+    assert kinds[0] == ROW_NONE
+    assert np.count_nonzero(kinds == ROW_PATH) >= 10
+    assert np.all(kinds[~inside] != ROW_PATH)
+    assert access_count == 1
+    # the access row's strand piece is centred on sigma_entry, half a segment either side
+    nodes, weights = rows["access_node"][0], rows["access_weight"][0]
+    ends = [
+        weights[0] * sigma[nodes[0]] + weights[1] * sigma[nodes[1]],
+        weights[2] * sigma[nodes[2]] + weights[3] * sigma[nodes[3]],
+    ]
+    half = 0.5 * (sigma[j + 1] - sigma[j])
+    assert ends == pytest.approx([state.path_sigma_entry[0] - half, state.path_sigma_entry[0] + half], abs=1e-12)
+    assert rows["access_rest"][0] == pytest.approx(2 * half)
+
+
+def test_no_puncture_below_the_threshold_keeps_a_triangle_row_on_the_tip():
+    tissue = _block_tissue()
+    needle = NeedleModel.from_shape()
+    model = CouplingModel.build(tissue, needle)
+    state = CouplingState.empty(model)
+    work = CouplingWork(model)
+    q = tissue.particle_rest_q
+    angle = math.asin((CENTRE_HEIGHT - 1e-4) / needle.shape.curvature_radius)  # tip 0.1 mm above the top
+    x = _strand(needle, _needle_pose(needle, angle))
+    state.tip_force = 0.99 * model.params.puncture_force
+    coupling_detect(model, state, work, tissue, q, x)
+    assert state.path_count == 0 and not state.punctured
+    assert work.row_kind[0] == ROW_TRIANGLE and state.strand_status[0] == NODE_HEAD
+    assert state.strand_sdist[0] == pytest.approx(1e-4, abs=1e-9)
+    state.tip_force = model.params.puncture_force
+    coupling_detect(model, state, work, tissue, q, x)
+    assert state.punctured and work.row_kind[0] == ROW_NONE
+
+
+def test_retracted_tip_releases_its_open_path():
+    angles = np.concatenate([np.linspace(0.0, 0.6, 80), np.linspace(0.6, 0.0, 80)])
+    _, _, _, log = _sweep(angles=angles)
+    assert max(s.path_count for _, s, *_ in log) == 1
+    assert log[-1][1].path_count == 0 and log[-1][1].pathnode_count == 0
+
+
+def test_buffers_overflow_is_flagged_not_raised():
+    angles = np.linspace(0.0, 2.0, 200)
+    _, _, _, log = _sweep(params=CouplingParams(max_path_nodes=4), angles=angles)
+    state = log[-1][1]
+    assert state.overflow and state.pathnode_count == 4
+
+
+def test_snapshot_copy_is_deep_and_detection_is_deterministic():
+    angles = np.linspace(0.0, 2.5, 150)
+    _, _, _, log_a = _sweep(angles=angles)
+    _, _, _, log_b = _sweep(angles=angles)
+    for (_, sa, _xa, ra, ca), (_, sb, _xb, rb, cb) in zip(log_a, log_b, strict=True):
+        for name, value in vars(sa).items():
+            other = getattr(sb, name)
+            if isinstance(value, np.ndarray):
+                assert value.tobytes() == other.tobytes(), name
+            else:
+                assert value == other, name
+        assert ca == cb and ra["row_kind"].tobytes() == rb["row_kind"].tobytes()
+    state = log_a[-1][1]
+    snap = state.copy()
+    state.pathnode_bary[:] = 7.0
+    state.path_count = 99
+    assert not np.any(snap.pathnode_bary == 7.0) and snap.path_count != 99
+
+
+def test_suture_extends_the_strand_coordinates():
+    tissue = _block_tissue()
+    needle = NeedleModel.from_shape()
+    suture = RodModel.from_params(SutureParams(length=0.05, node_count=51))
+    model = CouplingModel.build(tissue, needle, suture)
+    nn = needle.node_count
+    assert model.strand_node_count == nn + 50
+    chord = np.linalg.norm(np.diff(needle.node_pos_body, axis=0), axis=1).sum()
+    assert model.strand_length == pytest.approx(chord + 0.05)
+    np.testing.assert_allclose(np.diff(model.strand_sigma[nn - 1 :]), 1e-3)
+    assert model.strand_friction[nn:].max() == 0.0
+    assert model.strand_friction[:nn].sum() == pytest.approx(model.params.needle_axial_friction * chord)
+    status = CouplingState.empty(model).strand_status
+    assert status[0] == NODE_HEAD and np.all(status[1:] == NODE_OUT)

@@ -1,0 +1,222 @@
+"""Needle and suture inside Solver.step: prediction under the action wrench, the suture's solve, coupling with
+the tissue, readings, validation, snapshots and determinism, divergence."""
+
+import math
+
+import numpy as np
+import pytest
+
+from suture_gym.sim.coupling import CouplingParams
+from suture_gym.sim.model import Control, Model, State
+from suture_gym.sim.needle import NeedleModel, NeedleState, VirtualCoupling
+from suture_gym.sim.quat import quat_to_matrix
+from suture_gym.sim.rod import RodModel, RodState, RodWork, SutureParams, segment_strain, step_strands
+from suture_gym.sim.scenes import needle_arc_pose, two_bar_suturing
+from suture_gym.sim.solver import PHASES, Solver
+
+DT = 1e-3
+
+
+def _free_strands(suture_nodes=21):
+    needle = NeedleModel.from_shape(gravity_compensation=True)
+    pos, quat = needle_arc_pose(needle, np.array([0.0, 0.0, 0.1]), 0.3)
+    suture = RodModel.from_params(SutureParams(length=0.02, node_count=suture_nodes))
+    swage = pos + quat_to_matrix(quat) @ needle.swage_pos_body
+    return needle, NeedleState.at_rest(pos, quat), suture, RodState.straight(suture, swage, (0.0, -1.0, 0.5))
+
+
+def test_needle_alone_accelerates_as_the_wrench_says():
+    needle = NeedleModel.from_shape(gravity_compensation=True)
+    model = Model(needle=needle)
+    state = State.initial(model, needle=NeedleState.at_rest([0.0, 0.0, 0.0], [1.0, 0.0, 0.0, 0.0]))
+    force = np.array([0.02, -0.01, 0.03])
+    control = Control(needle_wrench=np.concatenate([force, -np.cross(needle.grip_pos_body, force)]))  # at the CoM
+    steps = 50
+    for _ in range(steps):
+        Solver().step(model, state, control, DT)
+    np.testing.assert_allclose(state.needle.body_vel, force / needle.body_mass * steps * DT, rtol=1e-12)
+    np.testing.assert_allclose(state.needle.body_omega, 0.0, atol=1e-12)
+    np.testing.assert_allclose(state.needle_reaction, 0.0, atol=1e-12)  # nothing constrains it
+    assert state.time == pytest.approx(steps * DT)
+
+
+def test_needle_and_suture_match_the_strand_stepper_without_tissue():
+    needle, needle_state, suture, suture_state = _free_strands()
+    model = Model(needle=needle, suture=suture)
+    state = State.initial(model, needle=needle_state.copy(), suture=suture_state.copy())
+    reference_needle, reference_suture, work = needle_state.copy(), suture_state.copy(), RodWork(suture)
+    wrench = np.array([0.0, 0.01, 0.0, 0.0, 0.0, 1e-5])
+    solver = Solver()
+    for _ in range(200):
+        solver.step(model, state, Control(needle_wrench=wrench), DT)
+        step_strands(
+            suture,
+            reference_suture,
+            work,
+            DT,
+            needle_model=needle,
+            needle_state=reference_needle,
+            needle_wrench=wrench,
+            iterations=solver.rod_iterations,
+            tolerance=solver.rod_tolerance,
+        )
+    np.testing.assert_allclose(state.suture.node_pos, reference_suture.node_pos, rtol=0, atol=1e-12)
+    np.testing.assert_allclose(state.needle.body_pos, reference_needle.body_pos, rtol=0, atol=1e-12)
+    assert np.abs(segment_strain(suture, state.suture)).max() < 1e-4
+    swage = state.needle.body_pos + quat_to_matrix(state.needle.body_quat) @ needle.swage_pos_body
+    assert np.linalg.norm(state.suture.node_pos[0] - swage) < 1e-6
+    # the reaction wrench is the suture's pull on the needle: finite and non-zero
+    assert np.all(np.isfinite(state.needle_reaction)) and np.linalg.norm(state.needle_reaction[:3]) > 0
+
+
+def test_step_records_phase_timings():
+    scene = two_bar_suturing()
+    timings = {}
+    Solver().step(scene.model, scene.state, Control(), DT, timings=timings)
+    assert set(timings) == set(PHASES) and all(v >= 0.0 for v in timings.values())
+
+
+# --- validation -------------------------------------------------------------------------------------------
+
+
+def test_model_rejects_coupling_without_tissue_and_mismatched_strands():
+    scene = two_bar_suturing()
+    model = scene.model
+    with pytest.raises(ValueError, match="coupling needs"):
+        Model(needle=model.needle, suture=model.suture, coupling=model.coupling)
+    other = RodModel.from_params(SutureParams(length=0.05, node_count=51))
+    with pytest.raises(ValueError, match="strand of"):
+        Model(tissue=model.tissue, needle=model.needle, suture=other, coupling=model.coupling)
+    with pytest.raises(ValueError, match="Model.needle"):
+        Model(needle="needle")
+
+
+def test_step_rejects_state_that_does_not_match_the_model():
+    scene = two_bar_suturing()
+    state = scene.state
+    state.suture = None
+    with pytest.raises(ValueError, match="model.suture and state.suture"):
+        Solver().step(scene.model, state, Control(), DT)
+
+
+@pytest.mark.parametrize("field, value", [("rod_iterations", 0), ("rod_iterations", 2.5), ("rod_tolerance", -1.0)])
+def test_bad_solver_field_is_named(field, value):
+    with pytest.raises(ValueError, match=f"Solver.{field}"):
+        Solver(**{field: value})
+
+
+def test_initial_state_needs_matching_strand_states():
+    scene = two_bar_suturing()
+    with pytest.raises(ValueError, match="needle state"):
+        State.initial(scene.model, suture=scene.state.suture)
+
+
+# --- snapshots, determinism -------------------------------------------------------------------------------
+
+
+def _turning(scene, steps, start=0):
+    """Step the suturing scene with the virtual coupling turning the needle at 1 rad/s."""
+    model, state = scene.model, scene.state
+    center = np.array(scene.settings["arc_center_m"])
+    vc, solver, control = VirtualCoupling(), Solver(), Control()
+    for k in range(start, start + steps):
+        pos, quat = needle_arc_pose(model.needle, center, 1.0 * k * DT)
+        control.needle_wrench = vc.wrench(
+            model.needle, state.needle, pos + quat_to_matrix(quat) @ model.needle.grip_pos_body, quat
+        )
+        solver.step(model, state, control, DT)
+
+
+def _same(a: State, b: State) -> None:
+    for part in ("tissue", "needle", "suture", "coupling"):
+        x, y = getattr(a, part), getattr(b, part)
+        for name, value in vars(x).items():
+            other = getattr(y, name)
+            if isinstance(value, np.ndarray):
+                assert value.tobytes() == other.tobytes(), f"{part}.{name}"
+            else:
+                assert value == other, f"{part}.{name}"
+    assert a.suture_tension.tobytes() == b.suture_tension.tobytes()
+    assert a.needle_reaction.tobytes() == b.needle_reaction.tobytes()
+    assert a.time == b.time and a.diverged == b.diverged
+
+
+def test_snapshot_restore_replays_bit_for_bit_with_coupling_active():
+    scene = two_bar_suturing()
+    _turning(scene, 700)  # the tip is inside bar A
+    assert scene.state.coupling.punctured
+    snap = scene.state.snapshot()
+    _turning(scene, 150, start=700)
+    first = scene.state.snapshot()
+    assert first.coupling.pathnode_count > snap.coupling.pathnode_count  # the path grew meanwhile
+    scene.state.restore(snap)
+    _same(scene.state, snap)
+    _turning(scene, 150, start=700)
+    _same(scene.state, first)
+
+
+def test_same_controls_give_identical_runs():
+    a, b = two_bar_suturing(), two_bar_suturing()
+    _turning(a, 650)
+    _turning(b, 650)
+    _same(a.state, b.state)
+    assert a.state.coupling.punctures == 1
+
+
+# --- robustness -------------------------------------------------------------------------------------------
+
+
+def test_nan_needle_is_flagged_not_raised_and_frozen():
+    scene = two_bar_suturing()
+    scene.state.needle.body_pos[1] = math.nan
+    solver = Solver()
+    solver.step(scene.model, scene.state, Control(), DT)
+    assert scene.state.diverged
+    frozen = scene.state.snapshot()
+    solver.step(scene.model, scene.state, Control(), DT)
+    assert scene.state.time == frozen.time
+
+
+@pytest.mark.parametrize("puncture_force", [1.0e3, 0.015])
+def test_largest_wrench_straight_into_the_tissue_neither_explodes_nor_hangs(puncture_force):
+    """10 N (more than any action limit) straight down at the tip, held for 0.5 s: with a threshold it cannot
+    reach, the tissue is crushed against its base; with the scene's threshold the needle goes through. Either
+    way every step returns, and the state is finite or flagged as diverged."""
+    scene = two_bar_suturing(coupling_params=CouplingParams(puncture_force=puncture_force))
+    model, state = scene.model, scene.state
+    needle = model.needle
+    solver, control = Solver(), Control()
+    push = np.array([0.0, 0.0, -10.0])
+    for _ in range(500):
+        r = quat_to_matrix(state.needle.body_quat)
+        control.needle_wrench = np.concatenate([push, np.cross(r @ (needle.tip_pos_body - needle.grip_pos_body), push)])
+        solver.step(model, state, control, DT)
+    finite = all(
+        np.all(np.isfinite(a)) for a in (state.tissue.particle_q, state.needle.body_pos, state.suture.node_pos)
+    )
+    assert state.diverged or finite
+    if not state.diverged:
+        speed = float(np.abs(state.tissue.particle_qd).max())
+        assert speed <= solver.max_speed
+    assert state.coupling.path_count <= model.coupling.params.max_paths
+    assert state.coupling.pathnode_count <= model.coupling.params.max_path_nodes
+
+
+def test_reaction_balances_a_quasi_static_push():
+    """The needle resting on the tissue under a constant push feels the push back through the coupling."""
+    scene = two_bar_suturing(coupling_params=CouplingParams(puncture_force=1.0))
+    model, state = scene.model, scene.state
+    needle = model.needle
+    solver, control = Solver(), Control()
+    push = np.array([0.0, 0.0, -0.01])
+    for _ in range(1500):
+        r = quat_to_matrix(state.needle.body_quat)
+        v = state.needle.body_vel
+        force = push - 0.5 * v
+        control.needle_wrench = np.concatenate(
+            [force, np.cross(r @ (needle.tip_pos_body - needle.grip_pos_body), force) - 2e-4 * state.needle.body_omega]
+        )
+        solver.step(model, state, control, DT)
+    assert not state.diverged and state.coupling.punctures == 0
+    assert np.linalg.norm(state.needle.body_vel) < 1e-3
+    assert state.needle_reaction[2] == pytest.approx(-push[2], rel=0.1)
