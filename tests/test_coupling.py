@@ -1,5 +1,7 @@
 """Needle/suture-tissue coupling (paper section 4): constraint maths, rigid helpers, path spacing, matching,
-access points, release, snapshots and determinism of the detection. No solver here (see test_suturing.py)."""
+access points, release, snapshots and determinism of the detection; contact frames, depenetration floors,
+the tip's anchor friction, the tear bound and rigid supports. No solver here (see test_suturing.py and
+test_robustness.py)."""
 
 import math
 
@@ -10,23 +12,30 @@ from suture_gym.sim.coupling import (
     NODE_HEAD,
     NODE_IN,
     NODE_OUT,
+    ROW_ANCHOR,
     ROW_NONE,
     ROW_PATH,
     ROW_TRIANGLE,
+    ROW_WALL,
     CouplingModel,
     CouplingParams,
     CouplingState,
     CouplingWork,
     access_point,
+    contact_floors,
+    contact_frames,
     coupling_detect,
+    coupling_finish,
     node_access_constraint,
     node_path_constraint,
-    node_triangle_constraint,
+    node_surface_constraint,
     path_spacing_count,
+    project_needle_rows,
     project_onto_path,
     project_particles,
     rigid_apply,
     rigid_generalized_inv_mass,
+    surface_normal,
     track_sigma,
     xpbd_delta_lambda,
 )
@@ -85,37 +94,6 @@ def _triangle():
     return p
 
 
-def test_node_triangle_value_and_gradient_match_finite_differences():
-    p = _triangle()
-    eps = 3e-4
-    q = (0.3 * p[0] + 0.3 * p[1] + 0.4 * p[2]) + np.array([1e-4, -2e-4, 5e-4])
-    x = np.vstack([q[None], p])
-
-    def c_of(xx):
-        return node_triangle_constraint(xx[0], xx[1], xx[2], xx[3], eps)[1]
-
-    ok, c, n, b = node_triangle_constraint(q, p[0], p[1], p[2], eps)
-    assert ok
-    nrm = np.cross(p[1] - p[0], p[2] - p[0])
-    assert c == pytest.approx((q - p[0]) @ nrm / np.linalg.norm(nrm) - eps, abs=1e-15)
-    grad = np.vstack([n[None], -b[:, None] * n[None]])
-    np.testing.assert_allclose(grad, _fd_gradient(c_of, x), atol=1e-7)
-    assert b.sum() == pytest.approx(1.0) and np.all(b >= 0)
-
-
-def test_node_triangle_outside_projection_uses_closest_point_weights():
-    p = _triangle()
-    q = p[1] + np.array([0.01, 0.0, 0.002])  # projects beyond vertex 1
-    ok, c, n, b = node_triangle_constraint(q, p[0], p[1], p[2], 0.0)
-    assert ok and np.all(b >= 0) and b.sum() == pytest.approx(1.0)
-
-
-def test_node_triangle_degenerate_returns_early():
-    p = np.array([[0.0, 0, 0], [1e-3, 0, 0], [2e-3, 0, 0]])
-    ok, c, n, b = node_triangle_constraint(np.array([0.0, 0, 1e-3]), p[0], p[1], p[2], 0.0)
-    assert not ok and c == 0.0 and not n.any()
-
-
 def test_node_path_value_and_gradient_match_finite_differences():
     t = np.array([0.3, -0.2, 0.9])
     t /= np.linalg.norm(t)
@@ -171,15 +149,15 @@ def test_particle_projection_conserves_momentum_and_reduces_the_violation(kind):
     mass = RNG.uniform(1e-5, 1e-3, 5)
     if kind == "triangle":
         p = _triangle()
-        q = (0.2 * p[0] + 0.5 * p[1] + 0.3 * p[2]) - 4e-4 * np.cross(p[1] - p[0], p[2] - p[0]) / np.linalg.norm(
-            np.cross(p[1] - p[0], p[2] - p[0])
-        )
-        x = np.vstack([q[None], p])
+        normal = np.cross(p[1] - p[0], p[2] - p[0])
+        normal /= np.linalg.norm(normal)
+        bary = np.array([0.2, 0.5, 0.3])
+        x = np.vstack([(bary @ p - 4e-4 * normal)[None], p])
         m = mass[:4]
 
         def evaluate(xx):
-            ok, c, n, b = node_triangle_constraint(xx[0], xx[1], xx[2], xx[3], 0.0)
-            return c, np.vstack([n[None], -b[:, None] * n[None]])
+            c = node_surface_constraint(xx[0], xx[1], xx[2], xx[3], bary, normal, 0.0)
+            return c, np.vstack([normal[None], -bary[:, None] * normal[None]])
 
     elif kind == "path":
         t = np.array([0.0, 0.6, 0.8])
@@ -366,7 +344,7 @@ def _sweep(params=None, angles=None):
     for angle in angles:
         ns = _needle_pose(needle, angle)
         x = _strand(needle, ns)
-        pressing = work.row_kind[0] == ROW_TRIANGLE and state.strand_sdist[0] < model.params.resistance_eps
+        pressing = work.row_kind[0] == ROW_ANCHOR and state.strand_sdist[0] < model.params.resistance_eps
         state.tip_force = 2.0 * model.params.puncture_force if pressing else 0.0
         coupling_detect(model, state, work, tissue, q, x)
         log.append(
@@ -449,7 +427,7 @@ def test_matching_states_and_rows_while_the_needle_is_through():
     assert rows["access_rest"][0] == pytest.approx(2 * half)
 
 
-def test_no_puncture_below_the_threshold_keeps_a_triangle_row_on_the_tip():
+def test_no_puncture_below_the_threshold_keeps_the_tip_anchored():
     tissue = _block_tissue()
     needle = NeedleModel.from_shape()
     model = CouplingModel.build(tissue, needle)
@@ -461,11 +439,21 @@ def test_no_puncture_below_the_threshold_keeps_a_triangle_row_on_the_tip():
     state.tip_force = 0.99 * model.params.puncture_force
     coupling_detect(model, state, work, tissue, q, x)
     assert state.path_count == 0 and not state.punctured
-    assert work.row_kind[0] == ROW_TRIANGLE and state.strand_status[0] == NODE_HEAD
+    assert work.row_kind[0] == ROW_ANCHOR and state.strand_status[0] == NODE_HEAD
     assert state.strand_sdist[0] == pytest.approx(1e-4, abs=1e-9)
+    # the anchor is the tip's closest surface point; its normal is the smooth one there (tilted towards the
+    # y = 0 face, 1.7 mm away, by the blend of vertex normals)
+    assert work.row_tri[0] == state.tip_anchor_tri == state.strand_tri[0]
+    np.testing.assert_array_equal(state.tip_anchor_bary, state.strand_bary[0])
+    n = work.row_contact_normal[0]
+    assert np.linalg.norm(n) == pytest.approx(1.0) and n[0] == pytest.approx(0.0, abs=1e-12)
+    assert 0.8 < n[2] < 1.0 and n[1] < 0.0
+    anchor = access_point(model, q, state.tip_anchor_tri, state.tip_anchor_bary)
     state.tip_force = model.params.puncture_force
     coupling_detect(model, state, work, tissue, q, x)
-    assert state.punctured and work.row_kind[0] == ROW_NONE
+    assert state.punctured and work.row_kind[0] == ROW_NONE and state.tip_anchor_tri == -1
+    entry = access_point(model, q, state.path_entry_tri[0], state.path_entry_bary[0])
+    np.testing.assert_array_equal(entry, anchor)  # the path starts where the tip engaged the surface
 
 
 def test_retracted_tip_releases_its_open_path():
@@ -515,3 +503,228 @@ def test_suture_extends_the_strand_coordinates():
     assert model.strand_friction[:nn].sum() == pytest.approx(model.params.needle_axial_friction * chord)
     status = CouplingState.empty(model).strand_status
     assert status[0] == NODE_HEAD and np.all(status[1:] == NODE_OUT)
+
+
+# --- contact frames, floors, the tip's anchor, tear bound, rigid supports -----------------------------------
+
+
+def test_node_surface_constraint_value_and_gradient_match_finite_differences():
+    p = _triangle()
+    bary = np.array([0.2, 0.5, 0.3])
+    normal = np.array([0.36, -0.48, 0.8])
+    q = bary @ p + np.array([2e-4, -1e-4, 3e-4])
+    x = np.vstack([q[None], p])
+
+    def c_of(xx):
+        return node_surface_constraint(xx[0], xx[1], xx[2], xx[3], bary, normal, 3e-4)
+
+    assert c_of(x) == pytest.approx((q - bary @ p) @ normal - 3e-4, abs=1e-18)
+    grad = np.vstack([normal[None], -bary[:, None] * normal[None]])
+    np.testing.assert_allclose(grad, _fd_gradient(c_of, x), atol=1e-8)
+
+
+def test_surface_normal_is_the_face_normal_on_flat_ground_and_continuous_across_edges():
+    tissue = _block_tissue()
+    surface = CouplingModel.build(tissue, NeedleModel.from_shape()).surface
+    q = tissue.particle_rest_q
+    tv = surface.tri_vertices
+    args = (tv, surface.vertex_tri_start, surface.vertex_tri_index, q)
+    # a top-face triangle away from the block's edges: its vertex normals all point up
+    centroid = q[tv].mean(axis=1)
+    top = np.flatnonzero(
+        (np.abs(q[tv][:, :, 2] - BLOCK[2]) < 1e-12).all(axis=1)
+        & (np.abs(centroid[:, 0] - 0.5 * BLOCK[0]) < 6e-3)
+        & (np.abs(centroid[:, 1] - 0.5 * BLOCK[1]) < 4e-3)
+    )
+    assert top.size
+    np.testing.assert_allclose(surface_normal(top[0], np.array([0.2, 0.3, 0.5]), *args), [0.0, 0.0, 1.0], atol=1e-12)
+    # on an edge shared by a top-face and a side-face triangle the normal is the same seen from either
+    checked = 0
+    for t in range(tv.shape[0]):
+        for k in range(3):
+            other = surface.tri_neighbors[t, k]
+            n_t = np.cross(q[tv[t, 1]] - q[tv[t, 0]], q[tv[t, 2]] - q[tv[t, 0]])
+            n_o = np.cross(q[tv[other, 1]] - q[tv[other, 0]], q[tv[other, 2]] - q[tv[other, 0]])
+            if np.cross(n_t, n_o) @ np.cross(n_t, n_o) < 1e-20:
+                continue  # coplanar neighbours
+            a, b = tv[t, k], tv[t, (k + 1) % 3]
+            bary_t = np.zeros(3)
+            bary_t[k], bary_t[(k + 1) % 3] = 0.4, 0.6
+            bary_o = np.zeros(3)
+            bary_o[list(tv[other]).index(a)], bary_o[list(tv[other]).index(b)] = 0.4, 0.6
+            np.testing.assert_allclose(
+                surface_normal(t, bary_t, *args), surface_normal(other, bary_o, *args), atol=1e-12
+            )
+            checked += 1
+    assert checked > 10
+
+
+def test_a_contact_row_on_a_collapsed_neighbourhood_is_dropped():
+    tissue = _block_tissue()
+    surface = CouplingModel.build(tissue, NeedleModel.from_shape()).surface
+    q = np.full_like(tissue.particle_rest_q, 0.004)  # every vertex at one point: no normal anywhere
+    tv = surface.tri_vertices
+    n = surface_normal(0, np.full(3, 1.0 / 3.0), tv, surface.vertex_tri_start, surface.vertex_tri_index, q)
+    assert not n.any()
+    kind = np.array([ROW_TRIANGLE, ROW_PATH], np.int8)
+    normals = np.zeros((2, 3))
+    contact_frames(
+        kind, np.zeros(2, np.int32), np.full((2, 3), 1.0 / 3.0), np.zeros(tv.shape[0], np.bool_), tv,
+        surface.vertex_tri_start, surface.vertex_tri_index, q, normals,
+    )  # fmt: skip
+    assert kind.tolist() == [ROW_NONE, ROW_PATH] and not normals.any()
+
+
+def _floor(start_height, depenetration, eps=3e-4):
+    """contact_floors for one needle node (body origin) that starts ``start_height`` above a z = 0 triangle."""
+    tri = np.array([[0, 1, 2]], dtype=np.int32)
+    tissue_q = np.array([[-0.01, -0.01, 0.0], [0.02, -0.01, 0.0], [-0.01, 0.02, 0.0]])
+    out = np.full(1, np.nan)
+    contact_floors(
+        1, eps, depenetration, np.array([ROW_TRIANGLE], np.int8), np.zeros(1, np.int32),
+        np.full((1, 3), 1.0 / 3.0), np.array([[0.0, 0.0, 1.0]]), tri, np.array([0.0, 0.0, start_height]),
+        np.array([1.0, 0.0, 0.0, 0.0]), np.zeros((1, 3)), np.zeros((0, 3)), tissue_q, out,
+    )  # fmt: skip
+    return float(out[0])
+
+
+def test_contact_floors_bound_only_penetrations_older_than_the_substep():
+    assert _floor(1e-3, 1e-4) == 0.0  # started outside: the whole penetration is removed
+    assert _floor(3e-4, 1e-4) == 0.0  # started exactly eps out
+    assert _floor(-1e-3, 1e-4) == pytest.approx(-1e-3 - 3e-4 + 1e-4)  # started 1.3 mm in: 0.1 mm out per substep
+    assert _floor(2.5e-4, 1e-4) == 0.0  # within reach: fully resolved
+
+
+def _anchor_projection(friction, offset, penetration=1e-4, eps=3e-4):
+    """Project one anchor row of the default needle's tip against a static (pinned) triangle whose anchor
+    point lies ``offset`` (m) along +x of the tip's foot and ``penetration`` (m) above the contact layer."""
+    needle = NeedleModel.from_shape()
+    pos, quat = np.zeros(3), np.array([1.0, 0.0, 0.0, 0.0])
+    tip = pos + needle.node_pos_body[0]
+    normal = np.array([0.0, 0.0, 1.0])
+    anchor = tip - (eps - penetration) * normal + np.array([offset, 0.0, 0.0])
+    tissue_q = anchor + np.array([[-1e-3, -1e-3, 0.0], [2e-3, -1e-3, 0.0], [-1e-3, 2e-3, 0.0]])
+    nn = needle.node_count
+    kind = np.zeros(nn, np.int8)
+    kind[0] = ROW_ANCHOR
+    bary = np.full((nn, 3), 1.0 / 3.0)
+    normals = np.tile(normal, (nn, 1))
+    lam, lam_t, slip = np.zeros(nn), np.zeros(nn), np.zeros(4)
+    project_needle_rows(
+        nn, needle.body_inv_mass, needle.body_inv_inertia, needle.node_pos_body, pos.copy(), quat.copy(),
+        np.zeros(3), tissue_q.copy(), np.array([[0, 1, 2]], np.int32), np.zeros(nn), eps, 1e-3, friction, 4.0,
+        kind, np.zeros(nn, np.int32), bary, normals, np.zeros(nn), np.zeros((nn, 8), np.int32), np.zeros((nn, 8)),
+        np.zeros((nn, 3)), lam, lam_t, slip, pos, quat, tissue_q,
+    )  # fmt: skip
+    new_tip = pos + quat_to_matrix(quat) @ needle.node_pos_body[0]
+    return new_tip - anchor, lam[0], slip
+
+
+def test_anchored_tip_sticks_inside_the_friction_cone_and_slides_outside():
+    # the tip 0.1 mm into the contact layer and 20 um beside its anchor: within a cone of friction 1 it is
+    # put back eps over the anchor (normal and friction solved together for the rigid needle; exact to first
+    # order in the needle's turn, so to 0.5 um here)
+    rel, lam_n, slip = _anchor_projection(friction=1.0, offset=2e-5)
+    assert lam_n > 0.0 and 0.0 < np.linalg.norm(slip[:3]) < lam_n
+    np.testing.assert_allclose(rel, [0.0, 0.0, 3e-4], atol=5e-7)
+    assert slip[3] == 0.0 and slip[0] > 0.0  # the friction impulse pulls the tip towards +x
+    # with friction 0.05 the tip slides: the friction impulse sits on the cone, the offset is only reduced,
+    # and the tip is still put eps over the surface
+    rel, lam_n, slip = _anchor_projection(friction=0.05, offset=2e-5)
+    assert np.linalg.norm(slip[:3]) == pytest.approx(0.05 * lam_n, rel=1e-12)
+    assert 5e-6 < slip[3] < 2e-5 and np.hypot(rel[0], rel[1]) == pytest.approx(slip[3], abs=5e-7)
+    assert rel[2] == pytest.approx(3e-4, abs=5e-7)
+
+
+def test_a_path_row_transmits_at_most_the_tear_force():
+    needle = NeedleModel.from_shape()
+    nn = needle.node_count
+    pos, quat = np.zeros(3), np.array([1.0, 0.0, 0.0, 0.0])
+    node = pos + needle.node_pos_body[5]
+    tissue_q = node + np.array([[2e-3, 0.0, 0.0], [2e-3, 1e-3, 0.0], [2e-3, 0.0, 1e-3], [3e-3, 0.0, 0.0]])
+    kind = np.zeros(nn, np.int8)
+    kind[5] = ROW_PATH
+    idx = np.zeros((nn, 8), np.int32)
+    idx[5] = [0, 1, 2, 3, 0, 1, 2, 3]
+    weight = np.zeros((nn, 8))
+    weight[5, :4] = [1.0, 0.0, 0.0, 0.0]  # the path point is vertex 0 (held fixed), 2 mm from the node along x
+    tangent = np.tile([0.0, 0.0, 1.0], (nn, 1))
+    dt, tear = 1e-3, 0.5
+    lam = np.zeros(nn)
+    args = (
+        nn, needle.body_inv_mass, needle.body_inv_inertia, needle.node_pos_body, pos.copy(), quat.copy(),
+        np.zeros(4), tissue_q.copy(), np.zeros((1, 3), np.int32), np.zeros(nn), 3e-4, dt, 0.0,
+    )  # fmt: skip
+    project_needle_rows(
+        *args, tear, kind, np.zeros(nn, np.int32), np.zeros((nn, 3)), np.zeros((nn, 3)), np.zeros(nn), idx, weight,
+        tangent, lam, np.zeros(nn), np.zeros(4), pos, quat, tissue_q,
+    )  # fmt: skip
+    assert lam[5] == pytest.approx(-tear * dt * dt, rel=1e-12)
+    gap = np.linalg.norm((pos + quat_to_matrix(quat) @ needle.node_pos_body[5] - tissue_q[0])[:2])
+    assert gap > 1e-3  # the tissue gave way: the row could not pull node and path together
+
+
+def _pinned_bottom_block():
+    mesh = box_tet_grid(BLOCK, (6, 4, 4))
+    return TissueModel.from_mesh(mesh, TissueMaterial(), pinned=mesh.vertices[:, 2] == 0.0)
+
+
+@pytest.mark.parametrize("upward", [True, False])
+def test_a_node_crossing_a_rigid_face_gets_a_row_keeping_it_on_its_side(upward):
+    tissue = _pinned_bottom_block()
+    needle = NeedleModel.from_shape()
+    model = CouplingModel.build(tissue, needle)
+    assert model.tri_rigid.sum() == 2 * 6 * 4  # the bottom face, and only it
+    state, work = CouplingState.empty(model), CouplingWork(model)
+    q = tissue.particle_rest_q
+    x = np.tile([0.5, 0.5, 0.5], (needle.node_count, 1))  # far away: skipped by the broad phase
+    x[7] = [0.011, 0.007, 1e-3 if upward else -1e-3]
+    start = x.copy()
+    start[7, 2] = -x[7, 2]
+    coupling_detect(model, state, work, tissue, q, x, start)
+    assert model.tri_rigid[work.row_tri[7]]
+    if upward:  # from under the base into the tissue: kept out, below the base
+        assert work.row_kind[7] == ROW_TRIANGLE
+        np.testing.assert_allclose(work.row_contact_normal[7], [0.0, 0.0, -1.0], atol=1e-12)
+    else:  # from inside through the base: kept in
+        assert work.row_kind[7] == ROW_WALL
+        np.testing.assert_allclose(work.row_contact_normal[7], [0.0, 0.0, 1.0], atol=1e-12)
+    np.testing.assert_allclose(
+        access_point(model, q, work.row_tri[7], work.row_bary[7]), [0.011, 0.007, 0.0], atol=1e-12
+    )
+    # without the start positions the node only sees its closest face: it would be pushed out downwards,
+    # through the base, when it came from inside
+    coupling_detect(model, state, work, tissue, q, x)
+    assert work.row_kind[7] == ROW_TRIANGLE
+    np.testing.assert_allclose(work.row_contact_normal[7], [0.0, 0.0, -1.0], atol=1e-12)
+
+
+def test_a_push_against_a_rigid_face_is_not_tissue_damage():
+    tissue = _pinned_bottom_block()
+    needle = NeedleModel.from_shape()
+    model = CouplingModel.build(tissue, needle)
+    state, work = CouplingState.empty(model), CouplingWork(model)
+    rigid, soft = np.flatnonzero(model.tri_rigid)[0], np.flatnonzero(~model.tri_rigid)[0]
+    dt = 1e-3
+    work.row_kind[5], work.row_tri[5], work.row_lambda[5] = ROW_TRIANGLE, rigid, 10.0 * dt * dt  # 10 N on the base
+    work.row_kind[6], work.row_tri[6], work.row_lambda[6] = ROW_TRIANGLE, soft, 0.5 * dt * dt  # 0.5 N on tissue
+    coupling_finish(model, state, work, dt, np.array([0.0, 0.0, -1.0]))
+    assert state.max_force == pytest.approx(0.5) and not state.damaged
+    work.row_lambda[6] = model.params.tear_force * dt * dt
+    coupling_finish(model, state, work, dt, np.array([0.0, 0.0, -1.0]))
+    assert state.damaged
+
+
+def test_the_tip_never_punctures_a_rigid_face():
+    tissue = _pinned_bottom_block()
+    needle = NeedleModel.from_shape()
+    model = CouplingModel.build(tissue, needle)
+    state, work = CouplingState.empty(model), CouplingWork(model)
+    q = tissue.particle_rest_q
+    x = np.tile([0.5, 0.5, 0.5], (needle.node_count, 1))
+    x[0] = [0.011, 0.007, -1e-4]  # the tip 0.1 mm under the base, pressing it hard
+    state.tip_force = 100.0 * model.params.puncture_force
+    for _ in range(2):
+        coupling_detect(model, state, work, tissue, q, x)
+        assert work.row_kind[0] == ROW_ANCHOR and model.tri_rigid[state.tip_anchor_tri]
+    assert state.punctures == 0 and state.path_count == 0

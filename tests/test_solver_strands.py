@@ -180,8 +180,8 @@ def test_nan_needle_is_flagged_not_raised_and_frozen():
 @pytest.mark.parametrize("puncture_force", [1.0e3, 0.015])
 def test_largest_wrench_straight_into_the_tissue_neither_explodes_nor_hangs(puncture_force):
     """10 N (more than any action limit) straight down at the tip, held for 0.5 s: with a threshold it cannot
-    reach, the tissue is crushed against its base; with the scene's threshold the needle goes through. Either
-    way every step returns, and the state is finite or flagged as diverged."""
+    reach, the needle drags the tissue's surface down and slides off; with the scene's threshold it goes
+    through. Either way every step returns and the state stays finite, below ``max_speed`` (not diverged)."""
     scene = two_bar_suturing(coupling_params=CouplingParams(puncture_force=puncture_force))
     model, state = scene.model, scene.state
     needle = model.needle
@@ -191,13 +191,10 @@ def test_largest_wrench_straight_into_the_tissue_neither_explodes_nor_hangs(punc
         r = quat_to_matrix(state.needle.body_quat)
         control.needle_wrench = np.concatenate([push, np.cross(r @ (needle.tip_pos_body - needle.grip_pos_body), push)])
         solver.step(model, state, control, DT)
-    finite = all(
-        np.all(np.isfinite(a)) for a in (state.tissue.particle_q, state.needle.body_pos, state.suture.node_pos)
-    )
-    assert state.diverged or finite
-    if not state.diverged:
-        speed = float(np.abs(state.tissue.particle_qd).max())
-        assert speed <= solver.max_speed
+    assert not state.diverged
+    for array in (state.tissue.particle_q, state.needle.body_pos, state.suture.node_pos):
+        assert np.all(np.isfinite(array))
+    assert float(np.abs(state.tissue.particle_qd).max()) <= solver.max_speed
     assert state.coupling.path_count <= model.coupling.params.max_paths
     assert state.coupling.pathnode_count <= model.coupling.params.max_path_nodes
 

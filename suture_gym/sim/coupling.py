@@ -20,28 +20,44 @@ Detection (once per substep, after the prediction; :func:`coupling_detect`)
    A strand node with ``sigma_exit <= sigma < sigma_entry`` is IN that path. Paths are made tip first, so
    the newest path holds the front of the strand, as in the paper; unlike a per-substep re-matching of
    segments, the coordinates move continuously and cannot swap paths when two strand segments come close.
-3. Puncture: while no path is open, the tip is held out of the tissue by node-triangle constraints. When the
-   force they exerted on the tip region (needle nodes within ``tip_length`` of the point) against the tip's
-   direction of travel in the previous substep, ``sum lambda (n . -d) / dt^2``, reaches ``puncture_force``
-   the tip punctures: a new path opens whose first node and entry access point are the tip's closest surface
-   point (triangle + barycentric coordinates); once the tip is through, both move to where the strand
-   crosses the surface.
+3. Puncture: while no path is open, the tip is held out of the tissue by its *anchor*: the surface point it
+   first comes within ``eps + contact_margin`` of (triangle + barycentric coordinates, a material point),
+   kept while the tip stays within that band of it along the normal. The anchor row is paper eq. 2 against
+   that point plus Coulomb friction (``tip_friction``): a sharp tip digs into the surface it touches and
+   does not slide into the crease between two faces of the dent it makes (a node held against the
+   closest face alone alternates between the faces of a crease and sinks through). A tip that slides (its
+   friction at the Coulomb bound) lets go of the anchor and is anchored again where it is. When the force
+   the tip region exerted on the tissue (the anchor row, and the contact rows of the needle nodes within
+   ``tip_length`` of the point) against the tip's direction of travel in the previous substep reaches
+   ``puncture_force``, the tip punctures: a new path opens whose first node and entry access point are the
+   anchor; once the tip is through, both move to where the strand crosses the surface. Rigid faces (all
+   three vertices pinned: the base, clamps) are never punctured.
 4. Path growth (paper section 4.3): while the path is open and the tip moves on, with ``d`` the distance from
    the tip to the last path node: no node if ``d < l``, ``floor(d / h)`` evenly spaced nodes (the last at the
    tip) if ``d > h``, one at the tip otherwise. Path nodes are tet index + barycentric coordinates located
    in the deformed mesh, so they move with the tissue.
 5. Exit: once the tip has been inside and is outside again, the point where the strand crosses the surface
-   becomes the exit access point and the path's last node; the path closes.
+   becomes the exit access point and the path's last node; the path closes. No exit through a rigid face;
+   a needle whose front left the tissue without crossing its surface loses the open path.
 6. Release: an open path whose tip backed out (``sigma_entry <= 0`` and the tip more than ``l`` away from
    the entry) and a closed path with no strand left inside (``sigma_exit >= sigma_entry``, e.g. the thread's
    free end pulled through) are removed.
 7. Constraint rows: HEAD inside an open path: none (it cuts). IN nodes: node-path (eq. 1) onto the matched
    path's polyline (nodes of an open path ahead of its last path node: none, the tip region cuts freely).
-   Other nodes within ``eps + contact_margin`` of the surface (the tip too while no path is open):
-   node-triangle (eq. 2), except the nodes of a strand piece through an access point. Every access point
-   with the strand through it: node-access (eq. 3) on the strand piece of one segment's length centred on
-   ``sigma_entry`` / ``sigma_exit`` (so the access point never sits at a piece's end, where eq. 3's gradient
-   would drag the tissue along with the strand).
+   Other nodes within ``eps + contact_margin`` of the surface (the tip too while no path is open, by its
+   anchor): a contact row (eq. 2), except the nodes of a strand piece through an access point. Needle nodes
+   inside a path with no row (the cutting front) within the band of a rigid face: a wall row, eq. 2 from
+   the inside, so a needle driven through the tissue stops at the base. Rigid supports: a strand node whose
+   motion this substep crosses a rigid face gets a row with that face keeping it on its side, whatever row it
+   had. Every access point with the strand through it: node-access (eq. 3) on the strand piece of one
+   segment's length centred on ``sigma_entry`` / ``sigma_exit`` (so the access point never sits at a piece's
+   end, where eq. 3's gradient would drag the tissue along with the strand).
+8. Contact frames: every contact row holds its node against a fixed surface point (the closest point, the
+   anchor or the crossing) along a normal fixed for the substep, the smooth (vertex-normal blend) normal
+   there (:func:`surface_normal`; the face normal of a rigid face): eq. 2 linearised at detection
+   (:func:`node_surface_constraint`). Face normals flip between neighbouring faces as a node moves across
+   an edge or the tissue folds, which made the heavy needle knock light surface nodes back and forth.
+   The solver then bounds how far each row may push its node out this substep (:func:`contact_floors`).
 
 Projection (called by :class:`~suture_gym.sim.solver.Solver`)
 --------------------------------------------------------------
@@ -53,9 +69,15 @@ Projection (called by :class:`~suture_gym.sim.solver.Solver`)
   suture nodes held on a path or passing an access point carry the inertia of the tissue point they are
   embedded in (:func:`embedded_inv_mass`), in their Gauss-Seidel node-path rows
   (:func:`project_suture_path_rows`) and in the rod's solve, and they slide freely along the path.
-* Suture node-triangle rows are one-sided contact rows inside the rod's direct solve, made two-way with the
+* Suture contact rows are one-sided contact rows inside the rod's direct solve, made two-way with the
   tissue (:func:`suture_contact_rows`, :func:`rod_iteration_with_contacts`, :func:`apply_contact_reaction`).
 * Node-access rows are Gauss-Seidel on the strand piece centred on the access point (:func:`project_access_rows`).
+* Contact rows of a node that started the substep inside the resistance layer push it out by at most
+  ``depenetration_speed * dt`` (:func:`contact_floors`): an old penetration is resolved over several
+  substeps instead of launching the node.
+* The rows that hold a strand in the tissue (node-path and node-access) transmit at most ``tear_force``
+  each: beyond it the tissue gives way and the strand cuts through it (the damage flag is set). Without
+  this bound a needle wrenched sideways drags and crushes the tissue along its path until it inverts.
 
 All rows are two-way: the tissue vertices take the reaction with their barycentric weights, so a needle pushed
 against the tissue deforms it and a pulled thread closes the wound.
@@ -74,11 +96,11 @@ from suture_gym.sim.bvh import BVH, build_bvh, refit_bvh
 from suture_gym.sim.collision import (
     TriangleSurface,
     build_triangle_surface,
-    closest_point_triangle,
     locate_points,
     segment_crossings,
     signed_distance,
 )
+from suture_gym.sim.needle import point_inv_mass_matrix
 from suture_gym.sim.quat import quat_from_rotation_vector, quat_mul, quat_normalize, quat_to_matrix
 from suture_gym.sim.rod import (
     align_frames,
@@ -97,6 +119,8 @@ NODE_OUT = 2
 ROW_NONE = 0
 ROW_TRIANGLE = 1
 ROW_PATH = 2
+ROW_ANCHOR = 3
+ROW_WALL = 4
 
 #: Tissue vertices a node-path row touches: the two tets of the path nodes either side of the projection.
 PATH_ROW_VERTICES = 8
@@ -129,8 +153,15 @@ class CouplingParams:
         path_spacing_max: ``h``, m: a longer step adds ``floor(d / h)`` nodes. Defaults ``l = 1.2 mm``,
             ``h = 1.7 mm`` (the paper's 1.2 / 1.7 cm scaled to a 26 mm needle): a bite through one 30 mm wound
             edge of the two-bar scene with the default half-circle needle is 10-14 mm of path, 6-11 nodes.
-        tear_force: coupling force, N, above which the tissue counts as damaged (a sticky flag; tear-through
-            forces of sutures are 3-4 N).
+        tear_force: N, the largest force one node-path or node-access row transmits: beyond it the tissue gives
+            way and the strand cuts through (tear-through forces of sutures are 3-4 N). A coupling force
+            reaching it sets the sticky damage flag.
+        tip_friction: Coulomb friction coefficient of the tip on the surface before puncture (>= 0): the sharp
+            tip engages the surface point it first touches (the *anchor*) and slides only while the tangential
+            force exceeds ``tip_friction`` times the normal force.
+        depenetration_speed: m/s; a strand node that starts a substep inside a contact's resistance layer is
+            moved out by at most ``depenetration_speed * dt`` per substep instead of all at once (a contact
+            the prediction violates from outside is still resolved fully).
         needle_axial_friction: kinetic friction force per metre of needle inside the tissue, N/m, resisting
             the needle's motion along its path relative to the tissue (0 disables it).
         contact_margin: m; node-triangle rows are made for strand nodes closer than ``eps + contact_margin`` to
@@ -150,6 +181,8 @@ class CouplingParams:
     path_spacing_min: float = 1.2e-3
     path_spacing_max: float = 1.7e-3
     tear_force: float = 4.0
+    tip_friction: float = 1.0
+    depenetration_speed: float = 0.1
     needle_axial_friction: float = 10.0
     contact_margin: float = 1.0e-3
     track_window: float = 2.0e-3
@@ -165,6 +198,7 @@ class CouplingParams:
             "path_spacing_min",
             "path_spacing_max",
             "tear_force",
+            "depenetration_speed",
             "contact_margin",
             "track_window",
             "broad_phase_margin",
@@ -173,10 +207,11 @@ class CouplingParams:
             if not (_is_real(value) and math.isfinite(value) and value > 0.0):
                 raise ValueError(f"CouplingParams.{name} must be a finite number > 0, got {value!r}")
             object.__setattr__(self, name, float(value))
-        value = self.needle_axial_friction
-        if not (_is_real(value) and math.isfinite(value) and value >= 0.0):
-            raise ValueError(f"CouplingParams.needle_axial_friction must be a finite number >= 0 N/m, got {value!r}")
-        object.__setattr__(self, "needle_axial_friction", float(value))
+        for name in ("needle_axial_friction", "tip_friction"):
+            value = getattr(self, name)
+            if not (_is_real(value) and math.isfinite(value) and value >= 0.0):
+                raise ValueError(f"CouplingParams.{name} must be a finite number >= 0, got {value!r}")
+            object.__setattr__(self, name, float(value))
         if self.path_spacing_min > self.path_spacing_max:
             raise ValueError(
                 f"CouplingParams.path_spacing_min ({self.path_spacing_min}) must not exceed "
@@ -203,56 +238,6 @@ def xpbd_delta_lambda(c, w_sum, alpha_tilde, lam):
     if denom <= 0.0:
         return 0.0
     return (-c - alpha_tilde * lam) / denom
-
-
-@njit(cache=True)
-def node_triangle_constraint(q, p1, p2, p3, eps):
-    """Node-triangle constraint of paper eq. 2: ``C = (q - p1) . n - eps``, ``n = p21 x p31 / |p21 x p31|``
-    (with ``p21 x p31 = (p2 - p1) x (p3 - p1)`` the outward normal of a counter-clockwise triangle).
-
-    Yu et al. 2020, eq. 2. Inequality: satisfied while ``C >= 0``.
-
-    Args:
-        q: (3,) strand node, m. p1, p2, p3: (3,) triangle vertices, m. eps: layer thickness, m.
-
-    Returns:
-        ``(ok, C, n, b)``: ``ok`` False for a degenerate (zero-area) triangle; ``C`` in m; ``n`` (3,) the unit
-        normal, which is ``grad_q C``; ``b`` (3,) the weights with ``grad_pk C = -b_k n``. Where the
-        projection of ``q`` onto the plane falls inside the triangle, ``b`` are its barycentric coordinates and
-        the gradient is exact; outside, ``b`` are those of the closest point of the triangle (non-negative,
-        summing to 1), which keeps the reaction on the triangle's own vertices.
-    """
-    e1 = p2 - p1
-    e2 = p3 - p1
-    nrm = np.cross(e1, e2)
-    area2 = math.sqrt(nrm[0] * nrm[0] + nrm[1] * nrm[1] + nrm[2] * nrm[2])
-    n = np.zeros(3)
-    b = np.zeros(3)
-    scale = max(e1 @ e1, e2 @ e2)
-    if area2 <= 1.0e-12 * scale or scale == 0.0:
-        return False, 0.0, n, b
-    n[:] = nrm / area2
-    r = q - p1
-    c = r @ n - eps
-    # barycentrics of the projection of q onto the plane
-    proj = r - (r @ n) * n
-    d00 = e1 @ e1
-    d01 = e1 @ e2
-    d11 = e2 @ e2
-    d20 = proj @ e1
-    d21 = proj @ e2
-    det = d00 * d11 - d01 * d01
-    v = (d11 * d20 - d01 * d21) / det
-    w = (d00 * d21 - d01 * d20) / det
-    u = 1.0 - v - w
-    if u >= 0.0 and v >= 0.0 and w >= 0.0:
-        b[0] = u
-        b[1] = v
-        b[2] = w
-    else:
-        _, bc, _ = closest_point_triangle(q, p1, p2, p3)
-        b[:] = bc
-    return True, c, n, b
 
 
 @njit(cache=True)
@@ -392,6 +377,8 @@ class CouplingModel:
         strand_friction: ``(M,) float64`` kinetic axial friction cap of each strand node, N
             (``needle_axial_friction`` times the node's share of needle length; 0 for suture nodes).
         tri_tet_local: ``(F, 3) int8`` local index (0-3) in its tet of each vertex of each boundary triangle.
+        tri_rigid: ``(F,) bool`` boundary triangles whose three vertices are pinned: faces glued to a rigid
+            support (the base under the tissue, a clamp), which the strand can neither pierce nor leave through.
         surface: :class:`~suture_gym.sim.collision.TriangleSurface` of the tissue boundary.
         tet_bvh: :class:`~suture_gym.sim.bvh.BVH` over the tissue tets (path-node location).
     """
@@ -403,6 +390,7 @@ class CouplingModel:
     strand_seg_length: np.ndarray
     strand_friction: np.ndarray
     tri_tet_local: np.ndarray
+    tri_rigid: np.ndarray
     surface: TriangleSurface
     tet_bvh: BVH
 
@@ -448,7 +436,8 @@ class CouplingModel:
         if not np.all(np.take_along_axis(tets[tissue.tri_tet], local.astype(np.int64), axis=1) == tri):
             raise ValueError("tissue.tri_tet must name a tet containing each boundary triangle")
         rest = tissue.particle_rest_q
-        for array in (sigma, seg_length, friction, local):
+        rigid = np.all(tissue.particle_inv_mass[tri] == 0.0, axis=1)
+        for array in (sigma, seg_length, friction, local, rigid):
             array.flags.writeable = False
         return cls(
             params=params,
@@ -458,6 +447,7 @@ class CouplingModel:
             strand_seg_length=seg_length,
             strand_friction=friction,
             tri_tet_local=local,
+            tri_rigid=rigid,
             surface=build_triangle_surface(tri, rest),
             tet_bvh=build_bvh(tets, rest),
         )
@@ -489,11 +479,16 @@ class CouplingState:
         path_sigma_exit: ``(K,) float64`` strand coordinate at the exit access point, m (``-inf`` while open).
         pathnode_count: used path-node slots.
         pathnode_tet: ``(P,) int32`` tet of each path node. pathnode_bary: ``(P, 4) float64`` its barycentrics.
-        tip_force: force the tip's node-triangle constraint exerted in the last substep, N (the puncture test).
+        tip_anchor_tri: surface triangle of the tip's anchor (the surface point the tip engages before puncture,
+            :class:`CouplingParams` ``tip_friction``), -1 for none.
+        tip_anchor_bary: ``(3,) float64`` barycentric coordinates of the anchor in that triangle.
+        tip_force: force the tip region's contact rows exerted against the tip's direction of travel in the last
+            substep, N (the puncture test, :func:`coupling_finish`).
         friction_force: total axial friction force on the needle in the last substep, N.
-        max_force: largest single coupling-constraint force in the last substep, N.
+        max_force: largest single coupling-constraint force the tissue bore in the last substep, N (contacts with
+            rigid faces excluded).
         punctures: number of punctures so far.
-        damaged: set once any coupling force exceeded ``tear_force`` (sticky).
+        damaged: set once any coupling force reached ``tear_force`` (sticky).
         overflow: set once a puncture or a path node was refused for lack of buffer space (sticky).
     """
 
@@ -514,6 +509,8 @@ class CouplingState:
     path_sigma_exit: np.ndarray
     pathnode_tet: np.ndarray
     pathnode_bary: np.ndarray
+    tip_anchor_bary: np.ndarray
+    tip_anchor_tri: int = -1
     path_count: int = 0
     pathnode_count: int = 0
     tip_force: float = 0.0
@@ -549,6 +546,7 @@ class CouplingState:
             path_sigma_exit=np.full(k, -np.inf),
             pathnode_tet=np.full(p, -1, np.int32),
             pathnode_bary=np.zeros((p, 4)),
+            tip_anchor_bary=np.zeros(3),
         )
 
     def copy(self) -> CouplingState:
@@ -576,22 +574,31 @@ class CouplingWork:
     Rebuilt by every :func:`coupling_detect`, so it carries no state between substeps.
 
     Attributes (M strand nodes, K = ``max_paths``, P = ``max_path_nodes``):
-        strand_q: ``(M, 3)`` strand node positions at detection, m.
+        strand_q: ``(M, 3)`` strand node positions at detection, m; strand_q_start: ``(M, 3)`` at the start of
+            the substep (filled by the solver).
         pathnode_q: ``(P, 3)`` path node positions at detection, m. pathnode_tangent: ``(P, 3)`` unit tangents.
-        row_kind: ``(M,) int8`` ROW_NONE / ROW_TRIANGLE / ROW_PATH. row_tri: ``(M,) int32`` triangle.
+        row_kind: ``(M,) int8`` ROW_NONE / ROW_TRIANGLE (contact) / ROW_PATH / ROW_ANCHOR (the tip's contact
+            with friction) / ROW_WALL (contact from the inside of a rigid face). row_tri: ``(M,) int32`` triangle.
         row_tissue: ``(M, 8) int32`` tissue vertices of a path row; row_weight: ``(M, 8)`` their weights.
         row_tangent: ``(M, 3)`` path tangent of a path row.
         row_lambda: ``(M,)`` multiplier (kg m) of each row this substep; row_friction_lambda: ``(M,)`` axial
-            friction multiplier; row_contact_normal: ``(M, 3)`` the surface normal of a needle node's
-            node-triangle row at its last projection.
+            friction multiplier.
+        row_bary: ``(M, 3)`` barycentric coordinates, in the row's triangle, of the surface point a contact row
+            holds its node against, and row_contact_normal: ``(M, 3)`` the unit contact normal (the smooth
+            surface normal there, :func:`surface_normal`; inward for wall rows), both fixed at detection
+            (:func:`contact_frames`).
+        row_floor: ``(M,)`` lower bound (m, <= 0) of ``C`` for each contact row this substep: how far inside the
+            resistance layer the node may still be at the end of the substep (:func:`contact_floors`).
+        tip_friction: ``(4,)`` the anchor row's accumulated tangential (friction) impulse on the tip, kg m, and the
+            tangential offset its projection left, m (> 0 when the tip slides).
         access_count: rows in use. access_node: ``(2K, 4) int32`` strand nodes of the two ends of the strand
             piece through the access point (ends ``a = w0 x0 + w1 x1``, ``b = w2 x2 + w3 x3``) and
             access_weight: ``(2K, 4)`` those weights; access_rest: ``(2K,)`` rest length of the piece, m;
             access_tri: ``(2K,) int32``; access_bary: ``(2K, 3)``; access_lambda: ``(2K,)``.
         suture_inv_mass: ``(Ns,)`` inverse masses of the suture nodes used by the projections this substep,
             1/kg (:func:`embedded_inv_mass`).
-        suture_contact_bary: ``(Ns, 3)`` triangle weights of the suture nodes' contact rows in the rod's solve,
-            and suture_contact_w: ``(Ns,)`` their generalised inverse mass, 1/kg.
+        suture_contact_w: ``(Ns,)`` generalised inverse mass (1/kg) of the tissue point of each suture node's
+            contact row in the rod's solve.
     """
 
     def __init__(self, model: CouplingModel):
@@ -599,6 +606,7 @@ class CouplingWork:
         k = model.params.max_paths
         p = model.params.max_path_nodes
         self.strand_q = np.zeros((m, 3))
+        self.strand_q_start = np.zeros((m, 3))
         self.pathnode_q = np.zeros((p, 3))
         self.pathnode_tangent = np.zeros((p, 3))
         self.row_kind = np.zeros(m, np.int8)
@@ -609,6 +617,9 @@ class CouplingWork:
         self.row_lambda = np.zeros(m)
         self.row_friction_lambda = np.zeros(m)
         self.row_contact_normal = np.zeros((m, 3))
+        self.row_floor = np.zeros(m)
+        self.row_bary = np.zeros((m, 3))
+        self.tip_friction = np.zeros(4)
         self.access_count = 0
         self.access_node = np.zeros((2 * k, 4), np.int32)
         self.access_weight = np.zeros((2 * k, 4))
@@ -617,7 +628,6 @@ class CouplingWork:
         self.access_bary = np.zeros((2 * k, 3))
         self.access_lambda = np.zeros(2 * k)
         self.suture_inv_mass = np.zeros(model.suture_node_count)
-        self.suture_contact_bary = np.zeros((model.suture_node_count, 3))
         self.suture_contact_w = np.zeros(model.suture_node_count)
 
 
@@ -919,6 +929,141 @@ def build_rows(
     return n_access
 
 
+@njit(cache=True)
+def _vertex_normal(v, tri_vertices, vertex_tri_start, vertex_tri_index, tissue_q):
+    """Area-weighted normal (3,) of surface vertex ``v`` (sum of the cross products of its triangles, not unit)."""
+    n = np.zeros(3)
+    for s in range(vertex_tri_start[v], vertex_tri_start[v + 1]):
+        t = vertex_tri_index[s]
+        a = tissue_q[tri_vertices[t, 0]]
+        n += np.cross(tissue_q[tri_vertices[t, 1]] - a, tissue_q[tri_vertices[t, 2]] - a)
+    return n
+
+
+@njit(cache=True)
+def surface_normal(tri, bary, tri_vertices, vertex_tri_start, vertex_tri_index, tissue_q):
+    """Smooth unit surface normal (3,) at the surface point (``tri``, ``bary`` (3,)): the barycentric blend of
+    the unit area-weighted normals of the triangle's vertices (Phong normal). It turns continuously as the
+    point moves across edges, so a node in a crease or at the bottom of a dent is pushed out along the
+    crease's bisector instead of alternately through one face and the other, as face normals would do.
+    Falls back to the triangle's own normal where the blend vanishes; zeros for a degenerate neighbourhood."""
+    n = np.zeros(3)
+    for k in range(3):
+        nv = _vertex_normal(tri_vertices[tri, k], tri_vertices, vertex_tri_start, vertex_tri_index, tissue_q)
+        length = math.sqrt(nv @ nv)
+        if length > 0.0:
+            n += bary[k] * nv / length
+    length = math.sqrt(n @ n)
+    if length <= 1.0e-6:
+        a = tissue_q[tri_vertices[tri, 0]]
+        n = np.cross(tissue_q[tri_vertices[tri, 1]] - a, tissue_q[tri_vertices[tri, 2]] - a)
+        length = math.sqrt(n @ n)
+        if length <= 0.0:
+            return np.zeros(3)
+    return n / length
+
+
+@njit(cache=True)
+def node_surface_constraint(q, p1, p2, p3, bary, normal, eps):
+    """Contact row of a strand node against a surface point: ``C = (q - p) . n - eps`` with the material point
+    ``p = sum_k b_k p_k`` of a surface triangle and the unit normal ``n`` held fixed over the substep.
+
+    Paper eq. 2 (Yu et al. 2020) linearised at detection: the node must stay ``eps`` outside the surface at
+    the point it touches; fixing ``p`` in the material and ``n`` to the smooth normal there
+    (:func:`surface_normal`) keeps the row's direction from flipping between faces as the surface deforms
+    within the substep. Inequality ``C >= 0``.
+
+    Args:
+        q: (3,) strand node, m. p1, p2, p3: (3,) triangle vertices, m. bary: (3,) weights ``b``.
+        normal: (3,) unit ``n``. eps: layer thickness, m.
+
+    Returns:
+        ``C`` in m; ``grad_q C = n`` and ``grad_pk C = -b_k n``.
+    """
+    p = bary[0] * p1 + bary[1] * p2 + bary[2] * p3
+    return (q - p) @ normal - eps
+
+
+@njit(cache=True)
+def contact_frames(
+    row_kind, row_tri, row_bary, tri_rigid, tri_vertices, vertex_tri_start, vertex_tri_index, tissue_q, row_normal
+):
+    """Unit contact normal of every contact row at detection, at its surface point (``row_tri``, ``row_bary``):
+    the face normal of a rigid triangle (``tri_rigid``), the smooth normal (:func:`surface_normal`) of a
+    deforming one; turned inward for ROW_WALL. A row whose normal is undefined (a collapsed neighbourhood)
+    is dropped (ROW_NONE). Writes ``row_normal`` (M, 3); updates ``row_kind``."""
+    for i in range(row_kind.shape[0]):
+        kind = row_kind[i]
+        if kind != ROW_TRIANGLE and kind != ROW_WALL and kind != ROW_ANCHOR:
+            continue
+        tri = row_tri[i]
+        if tri_rigid[tri]:
+            a = tissue_q[tri_vertices[tri, 0]]
+            n = np.cross(tissue_q[tri_vertices[tri, 1]] - a, tissue_q[tri_vertices[tri, 2]] - a)
+            length = math.sqrt(n @ n)
+            if length > 0.0:
+                n /= length
+        else:
+            n = surface_normal(tri, row_bary[i], tri_vertices, vertex_tri_start, vertex_tri_index, tissue_q)
+        if not (n[0] != 0.0 or n[1] != 0.0 or n[2] != 0.0):
+            row_kind[i] = ROW_NONE
+            continue
+        row_normal[i] = -n if kind == ROW_WALL else n
+
+
+@njit(cache=True)
+def contact_floors(
+    needle_node_count,
+    eps,
+    depenetration,
+    row_kind,
+    row_tri,
+    row_bary,
+    row_normal,
+    tri_vertices,
+    needle_pos_prev,
+    needle_quat_prev,
+    needle_node_body,
+    suture_q_prev,
+    tissue_q_prev,
+    out_floor,
+):
+    """Lower bound of each contact row's ``C`` this substep, from where the node was at the start of it:
+    ``floor = min(0, C_0 + depenetration)`` with ``C_0`` the row's constraint (:func:`node_surface_constraint`,
+    same frame) at the start-of-substep positions and ``depenetration`` (m) the most a node may be moved out
+    per substep.
+
+    A node that starts outside the resistance layer (``C_0 >= 0``) gets ``floor = 0``: the row removes the
+    whole penetration the prediction caused, as a rigid contact must. A node that starts inside by ``-C_0``
+    (the tissue folded over it, a path was released around it, a detection found it late) is moved out by at
+    most ``depenetration`` per substep, so resolving an old penetration never launches the node or the tissue
+    (the "maximum depenetration velocity" of game physics engines). Rows of other kinds get 0. Writes
+    ``out_floor`` (M,) in m.
+    """
+    nn = needle_node_count
+    r = quat_to_matrix(needle_quat_prev)
+    for i in range(row_kind.shape[0]):
+        out_floor[i] = 0.0
+        kind = row_kind[i]
+        if kind != ROW_TRIANGLE and kind != ROW_ANCHOR and kind != ROW_WALL:
+            continue
+        if i < nn:
+            q0 = needle_pos_prev + r @ needle_node_body[i]
+        else:
+            q0 = suture_q_prev[i - nn + 1]
+        tri = row_tri[i]
+        c0 = node_surface_constraint(
+            q0,
+            tissue_q_prev[tri_vertices[tri, 0]],
+            tissue_q_prev[tri_vertices[tri, 1]],
+            tissue_q_prev[tri_vertices[tri, 2]],
+            row_bary[i],
+            row_normal[i],
+            eps,
+        )
+        out_floor[i] = min(0.0, c0 + depenetration)
+
+
 # ----------------------------------------------------------------------------------------------------------
 # Projection kernels
 # ----------------------------------------------------------------------------------------------------------
@@ -930,6 +1075,131 @@ def _tissue_point(tissue_q, idx, weight):
     for a in range(idx.shape[0]):
         p += weight[a] * tissue_q[idx[a]]
     return p
+
+
+@njit(cache=True)
+def _project_contact(
+    needle_inv_mass,
+    needle_inv_inertia_body,
+    node_body,
+    tri,
+    bary,
+    normal,
+    tri_vertices,
+    tissue_inv_mass,
+    eps,
+    floor,
+    lam,
+    needle_pos,
+    needle_quat,
+    tissue_q,
+):
+    """A needle node's contact row (:func:`node_surface_constraint`, ``C >= floor``), rigid and two-way;
+    returns the updated multiplier (``lam`` in, kept ``>= 0``).
+
+    ``dlambda = -C / (w_needle + sum_k b_k^2 w_k)`` with ``w_needle`` the needle's generalised inverse mass at
+    the node (body point ``node_body`` (3,)) along ``n``: the needle takes the impulse ``dlambda n`` at the
+    node, vertex ``k`` of the triangle moves by ``-w_k b_k dlambda n``. Updates the needle pose and ``tissue_q``.
+    """
+    i0 = tri_vertices[tri, 0]
+    i1 = tri_vertices[tri, 1]
+    i2 = tri_vertices[tri, 2]
+    q = _body_point(needle_pos, needle_quat, node_body)
+    c = node_surface_constraint(q, tissue_q[i0], tissue_q[i1], tissue_q[i2], bary, normal, eps) - floor
+    if c >= 0.0 and lam == 0.0:
+        return lam
+    inv_inertia = _world_inv_inertia(needle_quat, needle_inv_inertia_body)
+    ang = np.cross(q - needle_pos, normal)
+    w = rigid_generalized_inv_mass(needle_inv_mass, inv_inertia, normal, ang)
+    w += bary[0] ** 2 * tissue_inv_mass[i0] + bary[1] ** 2 * tissue_inv_mass[i1] + bary[2] ** 2 * tissue_inv_mass[i2]
+    dlam = xpbd_delta_lambda(c, w, 0.0, lam)
+    if lam + dlam < 0.0:
+        dlam = -lam
+    rigid_apply(needle_pos, needle_quat, needle_inv_mass, inv_inertia, normal, ang, dlam)
+    for k in range(3):
+        vi = tri_vertices[tri, k]
+        tissue_q[vi] -= tissue_inv_mass[vi] * bary[k] * dlam * normal
+    return lam + dlam
+
+
+@njit(cache=True)
+def _project_anchor(
+    needle_inv_mass,
+    needle_inv_inertia_body,
+    node_body,
+    tri,
+    bary,
+    normal,
+    tri_vertices,
+    tissue_inv_mass,
+    eps,
+    floor,
+    friction,
+    lam,
+    friction_out,
+    needle_pos,
+    needle_quat,
+    tissue_q,
+):
+    """The tip's anchor row: the tip held ``eps`` above its anchor ``p = sum_k b_k x_k`` (eq. 2 with the
+    contact point fixed in the material, ``C_n = (q - p) . n - eps >= floor``) and over it across the normal,
+    within a Coulomb cone; returns the updated normal multiplier (``lam`` in, kept ``>= 0``).
+
+    The tip is a point of a rigid body whose generalised inverse mass is a full 3 x 3 matrix
+    (``K = I/m - [r]x I^-1 [r]x``, :func:`~suture_gym.sim.needle.point_inv_mass_matrix`, plus the anchor's
+    ``sum_k b_k^2 w_k``): an impulse across the normal also moves the tip along it and sideways, so the
+    normal and friction rows are solved together as one point constraint: the impulse ``P = K^-1 (t - q)``
+    that puts the tip on its target ``t = p + (eps + floor) n``. If the accumulated tangential impulse
+    (``friction_out[:3]``, kg m) would leave the cone ``|P_t| <= friction * P_n``, it is scaled back onto it
+    and the normal part re-solved with it fixed, so the tip slides; ``friction_out[3]`` gets the tangential
+    offset left, m (0 while the tip sticks). The needle takes ``P`` at the tip, vertex ``k`` moves by
+    ``-w_k b_k P``. Updates the needle pose, ``tissue_q`` and ``friction_out`` (4,).
+    """
+    i0 = tri_vertices[tri, 0]
+    i1 = tri_vertices[tri, 1]
+    i2 = tri_vertices[tri, 2]
+    w_tissue = (
+        bary[0] ** 2 * tissue_inv_mass[i0] + bary[1] ** 2 * tissue_inv_mass[i1] + bary[2] ** 2 * tissue_inv_mass[i2]
+    )
+    q = _body_point(needle_pos, needle_quat, node_body)
+    p = bary[0] * tissue_q[i0] + bary[1] * tissue_q[i1] + bary[2] * tissue_q[i2]
+    d = p + (eps + floor) * normal - q
+    friction_out[3] = 0.0
+    if d @ normal <= 0.0 and lam == 0.0:  # clear of the surface: no load, the tip slides freely
+        offset = d - (d @ normal) * normal
+        friction_out[3] = math.sqrt(offset @ offset)
+        return lam
+    inv_inertia = _world_inv_inertia(needle_quat, needle_inv_inertia_body)
+    r = q - needle_pos
+    k = point_inv_mass_matrix(needle_inv_mass, inv_inertia, r)
+    for a in range(3):
+        k[a, a] += w_tissue
+    impulse = np.linalg.solve(k, d)
+    p_n = impulse @ normal
+    if lam + p_n < 0.0:  # the tissue would have to pull the tip: the contact lets go
+        p_n = -lam
+        impulse = p_n * normal - (friction_out[:3])
+    else:
+        tangential = friction_out[:3] + impulse - p_n * normal
+        size = math.sqrt(tangential @ tangential)
+        cap = friction * (lam + p_n)
+        if size > cap:
+            tangential *= cap / size
+            push_t = tangential - friction_out[:3]
+            kn = k @ normal
+            p_n = (d @ normal - (k @ push_t) @ normal) / (normal @ kn)
+            if lam + p_n < 0.0:
+                p_n = -lam
+            impulse = p_n * normal + push_t
+            moved = k @ impulse - d
+            offset = moved - (moved @ normal) * normal
+            friction_out[3] = max(math.sqrt(offset @ offset), _TINY_LENGTH)
+    friction_out[:3] += impulse - (impulse @ normal) * normal
+    rigid_apply(needle_pos, needle_quat, needle_inv_mass, inv_inertia, impulse, np.cross(r, impulse), 1.0)
+    for a in range(3):
+        vi = tri_vertices[tri, a]
+        tissue_q[vi] -= tissue_inv_mass[vi] * bary[a] * impulse
+    return lam + (impulse @ normal)
 
 
 @njit(cache=True)
@@ -946,56 +1216,58 @@ def project_needle_rows(
     strand_friction,
     eps,
     dt,
+    tip_friction,
+    tear_force,
     row_kind,
     row_tri,
+    row_bary,
+    row_contact_normal,
+    row_floor,
     row_tissue,
     row_weight,
     row_tangent,
     row_lambda,
     row_friction_lambda,
-    row_contact_normal,
+    tip_friction_out,
     needle_pos,
     needle_quat,
     tissue_q,
 ):
     """One Gauss-Seidel pass over the rows of the needle nodes (strand nodes ``0 .. Nn-1``).
 
-    Node-triangle rows (eq. 2, inequality ``C >= 0``, multiplier kept ``>= 0``) and node-path rows (eq. 1)
-    are rigid (zero compliance) and two-way: ``dlambda = -C / (w_needle + sum_k b_k^2 w_k)`` with
-    ``w_needle`` the needle's generalised inverse mass at the node along the gradient; the needle takes the
-    impulse ``dlambda n`` at the node, tissue vertex ``k`` moves by ``-w_k b_k dlambda n``. After each path
-    row, kinetic axial friction: the relative displacement of node and path point along the tangent since
-    the start of the substep is removed up to a multiplier of ``strand_friction[i] dt^2`` in magnitude
-    (static below the cap, sliding at the cap). Updates the needle pose, ``tissue_q``, the multipliers and
-    ``row_contact_normal`` (the normal of each node-triangle row).
+    Contact rows (ROW_TRIANGLE, ROW_WALL, ROW_ANCHOR: :func:`node_surface_constraint` in the row's frame,
+    ``C >= row_floor``, multiplier kept ``>= 0``) and node-path rows (eq. 1) are rigid (zero compliance) and
+    two-way (:func:`_project_contact`): ``dlambda = -C / (w_needle + sum_k b_k^2 w_k)`` with ``w_needle`` the
+    needle's generalised inverse mass at the node along the gradient; the needle takes the impulse
+    ``dlambda n`` at the node, tissue vertex ``k`` moves by ``-w_k b_k dlambda n``. The tip's anchor row adds
+    Coulomb friction with coefficient ``tip_friction`` (:func:`_project_anchor`; its tangential impulse and
+    slip in ``tip_friction_out`` (4,)). A node-path multiplier is kept within ``tear_force dt^2`` in magnitude (the
+    tissue gives way beyond it). After each path row, kinetic axial friction: the relative displacement of
+    node and path point along the tangent since the start of the substep is removed up to a multiplier of
+    ``strand_friction[i] dt^2`` in magnitude (static below the cap, sliding at the cap). Updates the needle
+    pose, ``tissue_q`` and the multipliers.
     """
     for i in range(needle_node_count):
         kind = row_kind[i]
         if kind == ROW_NONE:
             continue
+        if kind == ROW_ANCHOR:
+            row_lambda[i] = _project_anchor(
+                needle_inv_mass, needle_inv_inertia_body, needle_node_body[i], row_tri[i], row_bary[i],
+                row_contact_normal[i], tri_vertices, tissue_inv_mass, eps, row_floor[i], tip_friction,
+                row_lambda[i], tip_friction_out, needle_pos, needle_quat, tissue_q,
+            )  # fmt: skip
+            continue
+        if kind != ROW_PATH:
+            row_lambda[i] = _project_contact(
+                needle_inv_mass, needle_inv_inertia_body, needle_node_body[i], row_tri[i], row_bary[i],
+                row_contact_normal[i], tri_vertices, tissue_inv_mass, eps, row_floor[i], row_lambda[i],
+                needle_pos, needle_quat, tissue_q,
+            )  # fmt: skip
+            continue
         inv_inertia = _world_inv_inertia(needle_quat, needle_inv_inertia_body)
         q = _body_point(needle_pos, needle_quat, needle_node_body[i])
         r = q - needle_pos
-        if kind == ROW_TRIANGLE:
-            tri = row_tri[i]
-            i0 = tri_vertices[tri, 0]
-            i1 = tri_vertices[tri, 1]
-            i2 = tri_vertices[tri, 2]
-            ok, c, n, b = node_triangle_constraint(q, tissue_q[i0], tissue_q[i1], tissue_q[i2], eps)
-            if not ok or (c >= 0.0 and row_lambda[i] == 0.0):
-                continue
-            row_contact_normal[i] = n
-            w = rigid_generalized_inv_mass(needle_inv_mass, inv_inertia, n, np.cross(r, n))
-            w += b[0] ** 2 * tissue_inv_mass[i0] + b[1] ** 2 * tissue_inv_mass[i1] + b[2] ** 2 * tissue_inv_mass[i2]
-            dlam = xpbd_delta_lambda(c, w, 0.0, row_lambda[i])
-            if row_lambda[i] + dlam < 0.0:
-                dlam = -row_lambda[i]
-            row_lambda[i] += dlam
-            rigid_apply(needle_pos, needle_quat, needle_inv_mass, inv_inertia, n, np.cross(r, n), dlam)
-            tissue_q[i0] -= tissue_inv_mass[i0] * b[0] * dlam * n
-            tissue_q[i1] -= tissue_inv_mass[i1] * b[1] * dlam * n
-            tissue_q[i2] -= tissue_inv_mass[i2] * b[2] * dlam * n
-            continue
         idx = row_tissue[i]
         wt = row_weight[i]
         t = row_tangent[i]
@@ -1007,6 +1279,7 @@ def project_needle_rows(
         if ok:
             w = rigid_generalized_inv_mass(needle_inv_mass, inv_inertia, n, np.cross(r, n)) + w_tissue
             dlam = xpbd_delta_lambda(c, w, 0.0, row_lambda[i])
+            dlam = max(row_lambda[i] + dlam, -tear_force * dt * dt) - row_lambda[i]
             row_lambda[i] += dlam
             rigid_apply(needle_pos, needle_quat, needle_inv_mass, inv_inertia, n, np.cross(r, n), dlam)
             for a in range(idx.shape[0]):
@@ -1054,13 +1327,15 @@ def project_access_rows(
     suture_inv_mass,
     tissue_inv_mass,
     tri_vertices,
+    force_cap,
     access_lambda,
     needle_pos,
     needle_quat,
     suture_q,
     tissue_q,
 ):
-    """One Gauss-Seidel pass over the node-access rows (eq. 3, inequality ``C <= 0``), two-way.
+    """One Gauss-Seidel pass over the node-access rows (eq. 3, inequality ``C <= 0``), two-way, each
+    multiplier kept within ``force_cap`` (kg m, the tear force times ``dt^2``) in magnitude.
 
     The strand piece's ends are ``pa = w0 x0 + w1 x1`` and ``pb = w2 x2 + w3 x3`` (strand nodes
     ``access_node``, weights ``access_weight``), so node ``k`` gets the gradient ``w_k ga`` or ``w_k gb``.
@@ -1100,6 +1375,7 @@ def project_access_rows(
         if lin @ lin + ang @ ang > 0.0:
             w += rigid_generalized_inv_mass(needle_inv_mass, inv_inertia, lin, ang)
         dlam = xpbd_delta_lambda(c, w, 0.0, access_lambda[a])
+        dlam = max(access_lambda[a] + dlam, -force_cap) - access_lambda[a]
         access_lambda[a] += dlam
         if lin @ lin + ang @ ang > 0.0:
             rigid_apply(needle_pos, needle_quat, needle_inv_mass, inv_inertia, lin, ang, dlam)
@@ -1183,11 +1459,36 @@ def _release_path(state: CouplingState, k: int) -> None:
     state.path_count -= 1
 
 
+def _rigid_crossings(model: CouplingModel, work: CouplingWork, tissue_q, strand_q_start, strand_q) -> None:
+    """Rigid supports (module docstring, detection step 7): a strand node whose motion this substep,
+    ``strand_q_start -> strand_q``, crosses a rigid face gets a contact row with that face at the crossing
+    point that keeps it on the side it came from (outside: ROW_TRIANGLE, inside: ROW_WALL), whatever row it
+    had; so neither a needle dragging the tissue down nor a tip cutting through it passes the base."""
+    hits = segment_crossings(strand_q_start, strand_q, model.surface, tissue_q)
+    done = np.zeros(strand_q.shape[0], dtype=bool)
+    for h in np.flatnonzero(model.tri_rigid[hits.crossing_tri]):
+        i = hits.crossing_segment[h]
+        if done[i]:
+            continue
+        done[i] = True
+        work.row_kind[i] = ROW_TRIANGLE if hits.crossing_direction[h] < 0 else ROW_WALL
+        work.row_tri[i] = hits.crossing_tri[h]
+        work.row_bary[i] = hits.crossing_bary[h]
+
+
 def coupling_detect(
-    model: CouplingModel, state: CouplingState, work: CouplingWork, tissue, tissue_q: np.ndarray, strand_q: np.ndarray
+    model: CouplingModel,
+    state: CouplingState,
+    work: CouplingWork,
+    tissue,
+    tissue_q: np.ndarray,
+    strand_q: np.ndarray,
+    strand_q_start: np.ndarray | None = None,
 ) -> None:
     """Detection phase (module docstring, steps 1-7) for strand positions ``strand_q`` (M, 3) m against the
     tissue (:class:`~suture_gym.sim.model.TissueModel` ``tissue``, positions ``tissue_q`` (N, 3) m).
+    ``strand_q_start`` (M, 3) m, the positions at the start of the substep, enables the rigid-support rows
+    (:func:`_rigid_crossings`).
 
     Updates ``state`` (distances, node states, paths, access points, puncture) and fills ``work``'s rows with
     zeroed multipliers. Uses ``state.tip_force`` from the previous substep for the puncture test.
@@ -1251,6 +1552,7 @@ def coupling_detect(
         work.pathnode_tangent,
     )
     _tip_events(model, state, work, tissue, tissue_q, tip)
+    _update_tip_anchor(model, state, tissue_q, tip)
     path_node_kinematics(
         state.pathnode_tet,
         state.pathnode_bary,
@@ -1297,9 +1599,59 @@ def coupling_detect(
         work.access_tri,
         work.access_bary,
     )
+    nn = model.needle_node_count
+    tri = state.strand_tri[:nn]
+    band = params.resistance_eps + params.contact_margin
+    wall = (
+        (work.row_kind[:nn] == ROW_NONE)
+        & (state.strand_path[:nn] >= 0)
+        & (tri >= 0)
+        & (state.strand_sdist[:nn] > -band)
+    )
+    wall[wall] = model.tri_rigid[tri[wall]]
+    work.row_kind[:nn][wall] = ROW_WALL
+    work.row_tri[:nn][wall] = tri[wall]
+    if state.tip_anchor_tri >= 0 and work.row_kind[0] != ROW_PATH:
+        in_access = np.any((work.access_node[: work.access_count] == 0) & (work.access_weight[: work.access_count] > 0))
+        if not in_access:
+            work.row_kind[0] = ROW_ANCHOR
+            work.row_tri[0] = state.tip_anchor_tri
+    work.row_bary[:] = state.strand_bary
+    if work.row_kind[0] == ROW_ANCHOR:
+        work.row_bary[0] = state.tip_anchor_bary
+    if strand_q_start is not None and model.tri_rigid.any():
+        _rigid_crossings(model, work, tissue_q, strand_q_start, strand_q)
+    contact_frames(
+        work.row_kind, work.row_tri, work.row_bary, model.tri_rigid, model.surface.tri_vertices,
+        model.surface.vertex_tri_start, model.surface.vertex_tri_index, tissue_q, work.row_contact_normal,
+    )  # fmt: skip
     work.row_lambda[:] = 0.0
     work.row_friction_lambda[:] = 0.0
     work.access_lambda[:] = 0.0
+    work.tip_friction[:] = 0.0
+
+
+def _update_tip_anchor(model: CouplingModel, state: CouplingState, tissue_q, tip) -> None:
+    """Keep, release or set the tip's anchor (module docstring, detection step 3) for the tip at ``tip`` (3,)
+    m: while no path is open, the tip engages the surface point it first comes within the contact band of and
+    keeps it until it moves off the surface (its gap along the anchor normal exceeds the band) or slides
+    (:func:`coupling_finish`)."""
+    params = model.params
+    band = params.resistance_eps + params.contact_margin
+    surface = model.surface
+    if state.punctured:
+        state.tip_anchor_tri = -1
+    if state.tip_anchor_tri >= 0:
+        n = surface_normal(
+            state.tip_anchor_tri, state.tip_anchor_bary, surface.tri_vertices, surface.vertex_tri_start,
+            surface.vertex_tri_index, tissue_q,
+        )  # fmt: skip
+        p = access_point(model, tissue_q, state.tip_anchor_tri, state.tip_anchor_bary)
+        if not n.any() or float((tip - p) @ n) > band:
+            state.tip_anchor_tri = -1
+    if state.tip_anchor_tri < 0 and not state.punctured and state.strand_tri[0] >= 0 and state.strand_sdist[0] < band:
+        state.tip_anchor_tri = int(state.strand_tri[0])
+        state.tip_anchor_bary[:] = state.strand_bary[0]
 
 
 def _tip_events(model, state, work, tissue, tissue_q, tip) -> None:
@@ -1309,12 +1661,15 @@ def _tip_events(model, state, work, tissue, tissue_q, tip) -> None:
     open_k = n - 1 if n > 0 and state.path_open[n - 1] else -1
     tip_sdist = state.strand_sdist[0]
     if open_k < 0:
-        if state.tip_force >= params.puncture_force and state.strand_tri[0] >= 0:
+        if state.tip_anchor_tri >= 0:
+            tri, bary = int(state.tip_anchor_tri), state.tip_anchor_bary.copy()
+        else:
+            tri, bary = int(state.strand_tri[0]), state.strand_bary[0].copy()
+        if state.tip_force >= params.puncture_force and tri >= 0 and not model.tri_rigid[tri]:
             if n >= params.max_paths or state.pathnode_count >= params.max_path_nodes:
                 state.overflow = True
                 return
-            tri = int(state.strand_tri[0])
-            bary = state.strand_bary[0].copy()
+            state.tip_anchor_tri = -1
             state.path_first[n] = state.pathnode_count
             state.path_len[n] = 0
             state.path_open[n] = True
@@ -1340,8 +1695,13 @@ def _tip_events(model, state, work, tissue, tissue_q, tip) -> None:
         slot = state.path_first[open_k]
         state.pathnode_tet[slot], state.pathnode_bary[slot] = _surface_point_tet(model, tissue, tri, bary)
         return
-    if state.path_entered[open_k] and tip_sdist > 0.0 and state.strand_tri[0] >= 0:
+    if state.path_entered[open_k] and tip_sdist > 0.0:
         tri, bary = _tip_crossing(model, state, tissue_q, work.strand_q)
+        if tri < 0:  # the needle's front left the tissue without crossing its surface: the bite is lost
+            _release_path(state, open_k)
+            return
+        if model.tri_rigid[tri]:
+            return
         state.path_open[open_k] = False
         state.path_exit_tri[open_k] = tri
         state.path_exit_bary[open_k] = bary
@@ -1377,26 +1737,40 @@ def coupling_finish(
     model: CouplingModel, state: CouplingState, work: CouplingWork, dt: float, tip_direction: np.ndarray
 ) -> None:
     """Force readings after the projection: the tip force, the total axial friction, the largest coupling force
-    and the sticky damage flag (``max_force > tear_force``).
+    the tissue bore (rows against rigid faces, the base or a clamp, do not count) and the sticky damage flag
+    (``max_force >= tear_force``); and the anchor's release when the tip slid.
 
-    The tip force (N), the puncture test of the next substep, is the force the tissue's node-triangle rows
-    exert against the tip's direction of travel ``tip_direction`` (3,) (unit, world) on the needle nodes within
-    ``tip_length`` of the point, ``sum_i lambda_i (n_i . -d) / dt^2``, clipped at 0: the load that drives
-    the cut. (In a dent the surface normals tilt, and the lateral part of the contact force is carried by the
-    holder, not by the cutting edge.)
+    The tip force (N), the puncture test of the next substep, is the force the tissue's contact rows exert
+    against the tip's direction of travel ``tip_direction`` (3,) (unit, world) on the needle nodes within
+    ``tip_length`` of the point: ``sum_i lambda_i (n_i . -d) / dt^2`` over their node-triangle rows, plus the
+    anchor row's normal and friction force along ``-d``, clipped at 0: the load that drives the cut. (In a
+    dent the surface normals tilt, and the lateral part of the contact force is carried by the holder, not by
+    the cutting edge.) A tip that slid this substep (its friction at the Coulomb bound) lets go of its anchor;
+    the next detection anchors it where it is.
     """
     inv_dt2 = 1.0 / (dt * dt)
     nn = model.needle_node_count
+    d = np.asarray(tip_direction, dtype=np.float64)
+    kind = work.row_kind[:nn]
     tip = model.strand_sigma[:nn] <= model.params.tip_length
-    touching = tip & (work.row_kind[:nn] == ROW_TRIANGLE)
-    axial = -(work.row_contact_normal[:nn][touching] @ np.asarray(tip_direction, dtype=np.float64))
-    state.tip_force = max(0.0, float(work.row_lambda[:nn][touching] @ axial) * inv_dt2)
+    touching = tip & (kind == ROW_TRIANGLE)
+    axial = -(work.row_contact_normal[:nn][touching] @ d)
+    load = float(work.row_lambda[:nn][touching] @ axial)
+    anchored = kind[0] == ROW_ANCHOR
+    if anchored:
+        load -= work.row_lambda[0] * float(work.row_contact_normal[0] @ d) + float(work.tip_friction[:3] @ d)
+        if work.tip_friction[3] > 0.0:
+            state.tip_anchor_tri = -1
+    state.tip_force = max(0.0, load * inv_dt2)
     state.friction_force = float(np.abs(work.row_friction_lambda).sum() * inv_dt2)
-    largest = float(np.abs(work.row_lambda).max(initial=0.0))
+    on_support = (work.row_kind != ROW_NONE) & (work.row_kind != ROW_PATH) & model.tri_rigid[work.row_tri]
+    largest = float(np.abs(np.where(on_support, 0.0, work.row_lambda)).max(initial=0.0))
+    if anchored and not on_support[0]:
+        largest = max(largest, math.hypot(work.row_lambda[0], float(np.linalg.norm(work.tip_friction[:3]))))
     if work.access_count:
         largest = max(largest, float(np.abs(work.access_lambda[: work.access_count]).max()))
     state.max_force = largest * inv_dt2
-    if state.max_force > model.params.tear_force:
+    if state.max_force >= (1.0 - 1.0e-9) * model.params.tear_force:  # a row held at its cap reads tear_force
         state.damaged = True
 
 
@@ -1467,13 +1841,15 @@ def project_suture_path_rows(
     row_tangent,
     suture_inv_mass,
     tissue_inv_mass,
+    force_cap,
     row_lambda,
     suture_q,
     tissue_q,
 ):
     """One Gauss-Seidel pass over the suture nodes' node-path rows (eq. 1, ``C = |(p - q) x t|``), rigid and
     two-way between the node (its embedded inverse mass, :func:`embedded_inv_mass`) and the path point's tissue
-    vertices. Updates ``suture_q``, ``tissue_q`` and ``row_lambda``."""
+    vertices, each multiplier kept within ``force_cap`` (kg m, the tear force times ``dt^2``) in magnitude.
+    Updates ``suture_q``, ``tissue_q`` and ``row_lambda``."""
     nn = needle_node_count
     for j in range(1, suture_q.shape[0]):
         i = nn + j - 1
@@ -1489,6 +1865,7 @@ def project_suture_path_rows(
         for a in range(PATH_ROW_VERTICES):
             w += wt[a] * wt[a] * tissue_inv_mass[idx[a]]
         dlam = xpbd_delta_lambda(c, w, 0.0, row_lambda[i])
+        dlam = max(row_lambda[i] + dlam, -force_cap) - row_lambda[i]
         row_lambda[i] += dlam
         suture_q[j] += suture_inv_mass[j] * dlam * n
         for a in range(PATH_ROW_VERTICES):
@@ -1501,20 +1878,22 @@ def suture_contact_rows(
     eps,
     row_kind,
     row_tri,
+    row_bary,
+    row_contact_normal,
+    row_floor,
     tri_vertices,
     tissue_q,
     tissue_inv_mass,
     suture_q,
     out_gap,
     out_normal,
-    out_bary,
     out_tissue_w,
 ):
-    """The suture nodes' node-triangle rows (eq. 2) as the rod's one-sided contact rows: ``gap = C`` and
-    ``normal = n`` at the current positions, the weights ``b`` of the triangle's vertices in ``out_bary`` and
-    their generalised inverse mass ``sum_v b_v^2 w_v`` (1/kg) in ``out_tissue_w``. Nodes without a
-    node-triangle row (and node 0, on the swage) get ``gap = +inf``. Writes ``out_gap`` (Ns,), ``out_normal``
-    (Ns, 3), ``out_bary`` (Ns, 3), ``out_tissue_w`` (Ns,)."""
+    """The suture nodes' contact rows (:func:`node_surface_constraint` in the row's frame) as the rod's
+    one-sided contact rows: ``gap = C - floor`` (``row_floor``, :func:`contact_floors`) at the current
+    positions, ``normal = n``, and the generalised inverse mass of the surface point ``sum_v b_v^2 w_v`` (1/kg)
+    in ``out_tissue_w``. Nodes without a contact row (and node 0, on the swage) get ``gap = +inf``. Writes
+    ``out_gap`` (Ns,), ``out_normal`` (Ns, 3), ``out_tissue_w`` (Ns,)."""
     nn = needle_node_count
     for j in range(suture_q.shape[0]):
         out_gap[j] = np.inf
@@ -1522,22 +1901,23 @@ def suture_contact_rows(
         if j == 0:
             continue
         i = nn + j - 1
-        if row_kind[i] != ROW_TRIANGLE:
+        if row_kind[i] != ROW_TRIANGLE and row_kind[i] != ROW_WALL:
             continue
         tri = row_tri[i]
-        ok, c, n, b = node_triangle_constraint(
+        b = row_bary[i]
+        c = node_surface_constraint(
             suture_q[j],
             tissue_q[tri_vertices[tri, 0]],
             tissue_q[tri_vertices[tri, 1]],
             tissue_q[tri_vertices[tri, 2]],
+            b,
+            row_contact_normal[i],
             eps,
         )
-        if ok:
-            out_gap[j] = c
-            out_normal[j] = n
-            out_bary[j] = b
-            for v in range(3):
-                out_tissue_w[j] += b[v] * b[v] * tissue_inv_mass[tri_vertices[tri, v]]
+        out_gap[j] = c - row_floor[i]
+        out_normal[j] = row_contact_normal[i]
+        for v in range(3):
+            out_tissue_w[j] += b[v] * b[v] * tissue_inv_mass[tri_vertices[tri, v]]
 
 
 @njit(cache=True)
@@ -1667,9 +2047,9 @@ def apply_contact_reaction(
     needle_node_count,
     row_kind,
     row_tri,
+    row_bary,
     tri_vertices,
     contact_normal,
-    contact_bary,
     z,
     tissue_inv_mass,
     row_lambda,
@@ -1682,21 +2062,23 @@ def apply_contact_reaction(
     for j in range(1, z.shape[0]):
         i = nn + j - 1
         dlam = z[j, 6]
-        if row_kind[i] != ROW_TRIANGLE or dlam == 0.0:
+        if (row_kind[i] != ROW_TRIANGLE and row_kind[i] != ROW_WALL) or dlam == 0.0:
             continue
         row_lambda[i] += dlam
         for v in range(3):
             vi = tri_vertices[row_tri[i], v]
-            tissue_q[vi] -= tissue_inv_mass[vi] * contact_bary[j, v] * dlam * contact_normal[j]
+            tissue_q[vi] -= tissue_inv_mass[vi] * row_bary[i, v] * dlam * contact_normal[j]
 
 
 def _tip_crossing(
     model: CouplingModel, state: CouplingState, tissue_q: np.ndarray, strand_q: np.ndarray
 ) -> tuple[int, np.ndarray]:
     """(triangle, barycentrics) where the strand nearest the tip crosses the surface, searched over the first
-    four strand segments; the tip's closest surface point when none crosses."""
-    k = min(4, strand_q.shape[0] - 1)
-    hits = segment_crossings(strand_q[:k], strand_q[1 : k + 1], model.surface, tissue_q)
-    if hits.crossing_tri.size:
-        return int(hits.crossing_tri[0]), hits.crossing_bary[0].copy()
+    four strand segments, then over the whole needle; the tip's closest surface point when none crosses
+    (triangle -1 when the tip is beyond the broad phase)."""
+    nn = model.needle_node_count
+    for k in (min(4, strand_q.shape[0] - 1), nn - 1):
+        hits = segment_crossings(strand_q[:k], strand_q[1 : k + 1], model.surface, tissue_q)
+        if hits.crossing_tri.size:
+            return int(hits.crossing_tri[0]), hits.crossing_bary[0].copy()
     return int(state.strand_tri[0]), state.strand_bary[0].copy()

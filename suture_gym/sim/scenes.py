@@ -276,6 +276,40 @@ def paper_cube(
     return scene
 
 
+#: Silicone-like suturing practice pad: 30 times stiffer than the paper's 1 kPa tissue, nearly incompressible.
+PAD_MATERIAL = TissueMaterial(youngs_modulus=3.0e4, poisson_ratio=0.45)
+
+
+def suturing_pad(
+    size: tuple[float, float, float] = (0.03, 0.03, 0.01),
+    cells: tuple[int, int, int] = (6, 6, 2),
+    material: TissueMaterial | None = None,
+    scheme: str = "five",
+    gravity: float = STANDARD_GRAVITY,
+) -> Scene:
+    """A block of tissue glued to a rigid base: a suturing practice pad.
+
+    Geometry: ``x in [0, size_x]``, ``y in [0, size_y]``, ``z in [0, size_z]``; the bottom face ``z = 0`` is
+    pinned; gravity ``(0, 0, -gravity)``. Default material :data:`PAD_MATERIAL` (30 kPa, nu = 0.45) in 5 mm
+    cells: it needs substeps of 0.5 ms to stay at rest and 0.25 ms under a needle pushed into it with
+    several newtons (see the stability notes of :mod:`suture_gym.sim.solver`).
+
+    Regions: ``top`` (the ``z = size_z`` face), ``pinned`` (the bottom face).
+    """
+    if len(size) != 3:
+        raise ValueError(f"size must be (x, y, z) in metres, got {size!r}")
+    sx, sy, sz = (_check_positive(f"size[{k}]", v) for k, v in enumerate(size))
+    material = material or PAD_MATERIAL
+    mesh = box_tet_grid((sx, sy, sz), cells, scheme=scheme)
+    z = mesh.vertices[:, 2]
+    tol = 1e-9 * max(sx, sy, sz)
+    pinned = np.abs(z) <= tol
+    settings = {"scene": "suturing_pad", "size_m": [sx, sy, sz], "cells": [int(c) for c in cells], "scheme": scheme}
+    return _scene(
+        mesh, material, pinned, (0.0, 0.0, -gravity), {"top": np.abs(z - sz) <= tol, "pinned": pinned}, settings
+    )
+
+
 #: Needle orientation across the wound of :func:`two_bar_wound` (body to world): the needle's plane is the
 #: y-z plane, its crown up, the tip on the -y side pointing down; turning it about +x drives it tip first
 #: towards +y, across the wound (shape x -> world -y, shape y -> world +z, shape z -> world -x).

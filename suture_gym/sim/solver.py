@@ -8,9 +8,11 @@
    Newton-Euler under the action wrench ``Control.needle_wrench`` at its grip point and gravity
    (:func:`~suture_gym.sim.needle.needle_predict`). The suture nodes under gravity
    (:func:`~suture_gym.sim.rod.rod_predict`). A non-finite prediction flags divergence and ends the substep.
-2. **Detect** (:func:`~suture_gym.sim.coupling.coupling_detect`): strand node positions, broad phase,
-   signed distances, node states, puncture, path growth, exit, release and the coupling constraint rows
-   (paper section 4), from the predicted positions. Suture nodes held on a path or passing an access point
+2. **Detect** (:func:`~suture_gym.sim.coupling.coupling_detect`): strand node positions at the start of
+   the substep and predicted, broad phase, signed distances, node states, the tip's anchor, puncture, path
+   growth, exit, release and the coupling constraint rows with their contact frames (paper section 4), from
+   the predicted positions; then how far each contact row may push its node out this substep
+   (:func:`~suture_gym.sim.coupling.contact_floors`). Suture nodes held on a path or passing an access point
    get the inertia of the tissue point they are embedded in (:func:`~suture_gym.sim.coupling.embedded_inv_mass`)
    for this substep's projections.
 3. **Project** (:meth:`Solver._project`): ``iterations`` sweeps. Each sweep projects the tet constraints
@@ -40,8 +42,25 @@ one: default tissue (E = 1 kPa, nu = 0.49) in 5 mm cells compressed by 20% loses
 and sag under gravity are within about 1% at 1 ms (``dt_independence`` check). Smaller substeps or more
 ``iterations`` reduce the bias.
 
+Stability: the tissue projection is stable at rest only while ``dt sqrt(E / rho) / h`` stays below about
+0.9 (``h`` the cell size): measured on a 3 x 3 x 1 cm pad of 5 mm cells (:func:`~suture_gym.sim.scenes.suturing_pad`)
+at nu = 0.45, 20 kPa at 1 ms (0.89) stays at rest, 30 kPa at 1 ms (1.10) and 100 kPa at 0.5 ms (1.0) oscillate
+by 0.6-2 m/s. The cause is in the constraint split of the stable neo-Hookean energy: ``C_D = ||F||`` and
+``C_H = det F - gamma`` do not vanish at rest, so their multipliers carry an O(mu) stress there and the
+curvature terms ``lambda grad^2 C`` that XPBD's linearisation drops (the whole shear stiffness) act
+explicitly; more sweeps do not cure it (a 30 kPa pad of 2 mm cells at 1 ms still oscillates at 0.4 m/s
+with 8 sweeps). Under the large local strains of a needle pressed into it the margin shrinks further: at
+0.5 ms the 30 kPa pad keeps jittering at 0.2 m/s next to a needle held in it with 2 N, at 0.25 ms it
+comes to rest, so tissue that stiff needs ``dt`` = 0.25 ms for 5 mm cells. Coupling rows cannot
+transmit much more than ``m dt^-2`` times a cell size through a surface node of mass ``m`` in one sweep,
+so a concentrated load also dents the tissue more at large ``dt`` (a 1 N tip on the 30 kPa pad: 3.7 mm at
+0.25 ms, 5.3 mm at 0.5 ms).
+
 Robustness: every loop is bounded (fixed sweeps and rod iterations, path buffers of fixed size that flag
-overflow instead of growing), and divergence is reported in ``state.diverged``, never raised.
+overflow instead of growing), and divergence is reported in ``state.diverged``, never raised. A state is
+flagged when a position is non-finite or a speed exceeds ``max_speed``; during a large-strain snap-back
+(a needle released from a deep dent, tissue cut through) tissue moves at up to its strain times its wave
+speed (several m/s for 30 kPa tissue), so ``max_speed`` must stay well above that.
 """
 
 from __future__ import annotations
@@ -55,6 +74,7 @@ from numba import njit
 
 from suture_gym.sim.coupling import (
     apply_contact_reaction,
+    contact_floors,
     coupling_detect,
     coupling_finish,
     embedded_inv_mass,
@@ -218,7 +238,7 @@ class Solver:
         if not self._finite(state):
             state.diverged = True
             return
-        self._detect(model, state)
+        self._detect(model, state, dt)
         clock.lap("detect")
         for sweep in range(self.iterations):
             self._project(model, state, dt)
@@ -310,7 +330,7 @@ class Solver:
             arrays.append(state.suture.node_pos)
         return all(_all_finite(a) for a in arrays)
 
-    def _detect(self, model: Model, state: State) -> None:
+    def _detect(self, model: Model, state: State, dt: float) -> None:
         """Phase 2: coupling detection and this substep's constraint rows."""
         coupling = model.coupling
         if coupling is None:
@@ -321,7 +341,30 @@ class Solver:
         strand_positions_kernel(
             state.needle.body_pos, state.needle.body_quat, model.needle.node_pos_body, suture_q, scratch.strand_q
         )
-        coupling_detect(coupling, state.coupling, work, model.tissue, state.tissue.particle_q, scratch.strand_q)
+        strand_positions_kernel(
+            state.needle.body_pos_prev, state.needle.body_quat_prev, model.needle.node_pos_body,
+            state.suture.node_pos_prev if state.suture is not None else np.zeros((0, 3)), work.strand_q_start,
+        )  # fmt: skip
+        coupling_detect(
+            coupling, state.coupling, work, model.tissue, state.tissue.particle_q, scratch.strand_q,
+            work.strand_q_start,
+        )  # fmt: skip
+        contact_floors(
+            coupling.needle_node_count,
+            coupling.params.resistance_eps,
+            coupling.params.depenetration_speed * dt,
+            work.row_kind,
+            work.row_tri,
+            work.row_bary,
+            work.row_contact_normal,
+            coupling.surface.tri_vertices,
+            state.needle.body_pos_prev,
+            state.needle.body_quat_prev,
+            model.needle.node_pos_body,
+            state.suture.node_pos_prev if state.suture is not None else np.zeros((0, 3)),
+            state.tissue.particle_q_prev,
+            work.row_floor,
+        )
         if model.suture is not None:
             embedded_inv_mass(
                 coupling.needle_node_count,
@@ -389,14 +432,19 @@ class Solver:
             coupling.strand_friction,
             eps,
             dt,
+            coupling.params.tip_friction,
+            coupling.params.tear_force,
             work.row_kind,
             work.row_tri,
+            work.row_bary,
+            work.row_contact_normal,
+            work.row_floor,
             work.row_tissue,
             work.row_weight,
             work.row_tangent,
             work.row_lambda,
             work.row_friction_lambda,
-            work.row_contact_normal,
+            work.tip_friction,
             needle_state.body_pos,
             needle_state.body_quat,
             tissue_q,
@@ -411,6 +459,7 @@ class Solver:
                 work.row_tangent,
                 work.suture_inv_mass,
                 tissue_inv_mass,
+                coupling.params.tear_force * dt * dt,
                 work.row_lambda,
                 suture_q,
                 tissue_q,
@@ -429,6 +478,7 @@ class Solver:
             work.suture_inv_mass,
             tissue_inv_mass,
             tri_vertices,
+            coupling.params.tear_force * dt * dt,
             work.access_lambda,
             needle_state.body_pos,
             needle_state.body_quat,
@@ -467,9 +517,9 @@ class Solver:
             if coupling is not None:
                 suture_contact_rows(
                     coupling.needle_node_count, coupling.params.resistance_eps, cwork.row_kind, cwork.row_tri,
-                    coupling.surface.tri_vertices, state.tissue.particle_q, model.tissue.particle_inv_mass,
-                    rod_state.node_pos, work.contact_gap, work.contact_normal, cwork.suture_contact_bary,
-                    cwork.suture_contact_w,
+                    cwork.row_bary, cwork.row_contact_normal, cwork.row_floor, coupling.surface.tri_vertices,
+                    state.tissue.particle_q, model.tissue.particle_inv_mass, rod_state.node_pos, work.contact_gap,
+                    work.contact_normal, cwork.suture_contact_w,
                 )  # fmt: skip
             residual = rod_iteration_with_contacts(
                 inv_mass, suture.seg_rest_length, suture.seg_inv_inertia, suture.seg_stretch_compliance,
@@ -483,8 +533,8 @@ class Solver:
                 break
             if coupling is not None:
                 apply_contact_reaction(
-                    coupling.needle_node_count, cwork.row_kind, cwork.row_tri, coupling.surface.tri_vertices,
-                    work.contact_normal, cwork.suture_contact_bary, work.z, model.tissue.particle_inv_mass,
+                    coupling.needle_node_count, cwork.row_kind, cwork.row_tri, cwork.row_bary,
+                    coupling.surface.tri_vertices, work.contact_normal, work.z, model.tissue.particle_inv_mass,
                     cwork.row_lambda, state.tissue.particle_q,
                 )  # fmt: skip
 
