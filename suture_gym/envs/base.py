@@ -1,0 +1,435 @@
+"""The Gymnasium environments: :class:`SutureEnv` (flat observation) and :class:`SutureGoalEnv` (goal-conditioned).
+
+An env is a :class:`~suture_gym.envs.simulation.Simulation` (the physics facade), a task from
+:mod:`suture_gym.tasks` (reward terms, success) and the spaces.
+
+Action: ``Box(-1, 1, (6,), float32)``, scaled by the config (:class:`~suture_gym.envs.config.ActionConfig`):
+a wrench on the needle holder, or (``action_mode="pose_delta"``) a change of the holder's target pose reached
+through the virtual coupling. A non-finite action raises ValueError; finite actions outside the box are
+applied as given (wrap in ``gymnasium.wrappers.ClipAction`` to clip them).
+
+Observation: float32 vector laid out in :mod:`suture_gym.envs.spaces` (one row per index, with units), or for
+the goal-conditioned variant a Dict with ``observation``, ``achieved_goal`` and ``desired_goal``.
+
+Episode end: ``terminated`` on success, on a tear (coupling force above the tear force, unless
+``termination.end_on_tear`` is off) and when the tip leaves the workspace; ``truncated`` with
+``info["diverged"] = True`` when the simulation diverges (the observation is then the last finite one and
+every reward term 0); the time limit comes from registration (``TimeLimit``).
+
+``info`` at every step: ``is_success``, ``punctured``, ``tip_force`` (N), ``wound_gap`` (m, 0 without a
+wound), ``diverged``, ``cost`` (tissue-force cost >= 0, for safe RL), ``tear``, ``out_of_workspace``,
+``stitch`` and ``reward_<term>`` for each term of the task, with ``math.fsum`` of the terms equal to the reward
+exactly. ``reset`` adds ``params`` (the sampled episode parameters) and ``phase``.
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass
+from typing import Any
+
+import gymnasium as gym
+import numpy as np
+
+from suture_gym.envs.config import EnvConfig, apply_overrides, load_config
+from suture_gym.envs.randomization import EpisodeParams, nominal_params, sample_params
+from suture_gym.envs.simulation import Simulation, SimulationSnapshot
+from suture_gym.envs.spaces import SDIST_CLIP, ObsField, observation_layout, observation_size
+from suture_gym.sim.quat import quat_conj, quat_from_rotation_vector, quat_mul, quat_normalize, quat_rotation_vector
+from suture_gym.tasks import TASK_CLASSES, Observables, Task, TaskState
+
+#: Keys ``reset(options=...)`` accepts.
+RESET_OPTIONS = ("phase", "params")
+
+
+@dataclass(frozen=True)
+class EnvState:
+    """A snapshot of everything that decides an env's future (see :meth:`SutureEnv.get_state`).
+
+    Attributes:
+        simulation: the physics snapshot.
+        task: the task's bookkeeping.
+        target_pos: ``(3,)`` holder target position, m (pose_delta mode; the grip pose otherwise).
+        target_quat: ``(4,)`` holder target orientation (w, x, y, z).
+        last_observation: the last observation returned (the fallback when the simulation diverges).
+        rng_state: the bit-generator state of ``np_random``.
+    """
+
+    simulation: SimulationSnapshot
+    task: TaskState
+    target_pos: np.ndarray
+    target_quat: np.ndarray
+    last_observation: Any
+    rng_state: dict
+
+
+def _copy_obs(obs):
+    if isinstance(obs, dict):
+        return {k: v.copy() for k, v in obs.items()}
+    return obs.copy()
+
+
+class SutureEnv(gym.Env):
+    """A suturing task on the XPBD simulator (module docstring for spaces, ends and ``info``).
+
+    Args:
+        task: ``"needle_insert"``, ``"suture_throw"`` or ``"wound_closure"``.
+        config: None (the task's defaults), an :class:`~suture_gym.envs.config.EnvConfig`, a nested mapping of
+            overrides or the path of a YAML file of overrides (``configs/envs/*.yaml``).
+        render_mode: None or ``"rgb_array"``.
+        action_mode: shortcut overriding ``config.action.mode`` (``"wrench"`` or ``"pose_delta"``).
+    """
+
+    metadata = {"render_modes": ["rgb_array"], "render_fps": 50}
+
+    def __init__(self, task: str = "needle_insert", config=None, render_mode: str | None = None,
+                 action_mode: str | None = None) -> None:
+        super().__init__()
+        cfg = load_config(task, config)
+        if action_mode is not None:
+            cfg = apply_overrides(cfg, {"action": {"mode": action_mode}})
+        if render_mode is not None and render_mode not in self.metadata["render_modes"]:
+            raise ValueError(f"render_mode must be None or one of {self.metadata['render_modes']}, got {render_mode!r}")
+        self.config: EnvConfig = cfg
+        self.render_mode = render_mode
+        self.sim = Simulation(cfg)
+        self.task_cls: type[Task] = TASK_CLASSES[cfg.task]
+        self.task: Task = self._make_task()
+        self.layout: tuple[ObsField, ...] = observation_layout(cfg)
+        self.obs_index: dict[str, slice] = {f.name: f.slice for f in self.layout}
+        size = observation_size(self.layout)
+        self.action_space = gym.spaces.Box(-1.0, 1.0, (6,), np.float32)
+        self.observation_space = gym.spaces.Box(-np.inf, np.inf, (size,), np.float32)
+        self.metadata = {**self.metadata, "render_fps": max(1, int(round(1.0 / self.sim.control_dt)))}
+        a = cfg.action
+        self._wrench_scale = np.array([a.max_force] * 3 + [a.max_torque] * 3)
+        self._obs_buffer = np.zeros(size)
+        self._target_pos = np.zeros(3)
+        self._target_quat = np.array([1.0, 0.0, 0.0, 0.0])
+        self._last_obs = None
+        self._renderer = None
+
+    # ------------------------------------------------------------------------------------------------------
+    # Gymnasium API
+    # ------------------------------------------------------------------------------------------------------
+
+    def reset(self, *, seed: int | None = None, options: dict | None = None):
+        """Start an episode: sample the parameters, rebuild the physics if they changed, place the needle.
+
+        Options: ``phase`` (one of the task's ``PHASES``; default the first, ``"approach"``) starts later in the
+        procedure for curricula; ``params`` (mapping) overrides sampled :class:`EpisodeParams` fields.
+        Unknown options raise ValueError.
+        """
+        super().reset(seed=seed)
+        options = {} if options is None else options
+        if not isinstance(options, dict):
+            raise ValueError(f"options must be a mapping, got {type(options).__name__}")
+        unknown = sorted(str(k) for k in options if k not in RESET_OPTIONS)
+        if unknown:
+            raise ValueError(f"unknown reset option(s) {unknown}; known: {list(RESET_OPTIONS)}")
+        phase = options.get("phase", self.task_cls.PHASES[0])
+        if phase not in self.task_cls.PHASES:
+            raise ValueError(f"phase must be one of {list(self.task_cls.PHASES)} for {self.config.task}, got {phase!r}")
+        params = sample_params(self.config, self.np_random)
+        if "params" in options:
+            params = params.with_overrides(options["params"])
+        self.sim.reset(params, phase)
+        self.task = self._make_task()
+        sim_obs = self.sim.observables()
+        self.task.reset(sim_obs)
+        self._target_pos, self._target_quat = self.sim.grip_pose()
+        obs = self._observation(sim_obs)
+        self._last_obs = _copy_obs(obs)
+        info = self._info(sim_obs, None, diverged=False)
+        info["params"] = params.to_dict()
+        info["phase"] = phase
+        return obs, info
+
+    def step(self, action):
+        """Apply ``action`` for one control period (``solver.substeps`` substeps) and score it."""
+        if self._last_obs is None:
+            raise RuntimeError("call reset() before step()")
+        a = self._check_action(action)
+        if self.config.action.mode == "wrench":
+            self.sim.step(a * self._wrench_scale)
+        else:
+            cfg = self.config.action
+            self._target_pos = self._target_pos + a[:3] * cfg.max_translation
+            turn = quat_from_rotation_vector(a[3:] * cfg.max_rotation)
+            self._target_quat = quat_normalize(quat_mul(turn, self._target_quat))
+            self.sim.step_toward(self._target_pos, self._target_quat)
+        sim_obs = self.sim.observables()
+        outcome = self.task.step(sim_obs, a)
+        obs = self._observation(sim_obs)
+        diverged = sim_obs.diverged or not self._finite(obs) or not math.isfinite(outcome.reward)
+        if diverged:
+            obs = _copy_obs(self._last_obs)
+            info = self._info(sim_obs, None, diverged=True)
+            return obs, 0.0, False, True, info
+        self._last_obs = _copy_obs(obs)
+        terminated = outcome.success or outcome.out_of_workspace or (
+            outcome.tear and self.config.termination.end_on_tear
+        )
+        info = self._info(sim_obs, outcome, diverged=False)
+        return obs, self._reward(obs, outcome, info), bool(terminated), False, info
+
+    def render(self):
+        """``(height, width, 3) uint8`` image of the scene (``render_mode="rgb_array"``), else None."""
+        if self.render_mode != "rgb_array":
+            return None
+        from suture_gym.render import SceneRenderer
+
+        if self._renderer is None:
+            r = self.config.render
+            self._renderer = SceneRenderer(r.width, r.height, ssaa=r.ssaa)
+            self._renderer.fit_camera(self.sim.view_points(), direction=(1.0, -0.35, 0.9), margin=1.02)
+        caption = f"{self.config.task.replace('_', ' ')}  t={self.sim.time:.2f}s"
+        return self._renderer.render(self.sim.render_frame(self._markers(), caption))
+
+    def close(self) -> None:
+        self._renderer = None
+        super().close()
+
+    def action_toward(self, target_pos: np.ndarray, target_quat: np.ndarray) -> np.ndarray:
+        """``(6,) float32`` action in [-1, 1] that moves the holder toward the grip pose ``target_pos`` (3,) m,
+        ``target_quat`` (4,): in ``wrench`` mode the virtual coupling's wrench toward it divided by the action
+        scale; in ``pose_delta`` mode the change of the holder target toward it divided by the per-step
+        limits. Clipped to [-1, 1]."""
+        target_pos = np.asarray(target_pos, dtype=np.float64)
+        target_quat = np.asarray(target_quat, dtype=np.float64)
+        if self.config.action.mode == "wrench":
+            wrench = self.sim.coupling_spring.wrench(self.sim.model.needle, self.sim.state.needle, target_pos,
+                                                     target_quat)
+            action = wrench / self._wrench_scale
+        else:
+            cfg = self.config.action
+            turn = quat_rotation_vector(quat_mul(target_quat, quat_conj(self._target_quat)))
+            action = np.concatenate([(target_pos - self._target_pos) / cfg.max_translation, turn / cfg.max_rotation])
+        return np.clip(action, -1.0, 1.0).astype(np.float32)
+
+    def scripted_action(self, tip_angle: float, stitch: int | None = None) -> np.ndarray:
+        """:meth:`action_toward` the needle lying on stitch ``stitch``'s planned circle (default: the current
+        stitch) with its tip at ``tip_angle`` (rad, :class:`~suture_gym.tasks.PlannedArc` convention): how a
+        surgeon drives a curved needle, about its own centre. A scripted surgeon advances ``tip_angle`` a
+        little every step."""
+        arc = self.sim.arcs[self.task.state.stitch if stitch is None else stitch]
+        return self.action_toward(*self.sim.arc_grip_target(arc, tip_angle))
+
+    # ------------------------------------------------------------------------------------------------------
+    # Snapshots
+    # ------------------------------------------------------------------------------------------------------
+
+    def get_state(self) -> EnvState:
+        """A deep snapshot of the episode (physics, task bookkeeping, holder target, last observation and the
+        random generator). Wrappers' own counters (``TimeLimit``'s elapsed steps) are not part of it."""
+        if self._last_obs is None:
+            raise RuntimeError("call reset() before get_state()")
+        return EnvState(
+            simulation=self.sim.snapshot(),
+            task=self.task.get_state(),
+            target_pos=self._target_pos.copy(),
+            target_quat=self._target_quat.copy(),
+            last_observation=_copy_obs(self._last_obs),
+            rng_state=self.np_random.bit_generator.state,
+        )
+
+    def set_state(self, state: EnvState) -> None:
+        """Restore a :meth:`get_state` snapshot; replaying the same actions then gives identical results."""
+        if not isinstance(state, EnvState):
+            raise ValueError(f"state must be an EnvState from get_state(), got {type(state).__name__}")
+        self.sim.restore(state.simulation)
+        self.task = self._make_task()
+        self.task.set_state(state.task)
+        self._target_pos = state.target_pos.copy()
+        self._target_quat = state.target_quat.copy()
+        self._last_obs = _copy_obs(state.last_observation)
+        self.np_random.bit_generator.state = state.rng_state
+
+    # ------------------------------------------------------------------------------------------------------
+    # Helpers
+    # ------------------------------------------------------------------------------------------------------
+
+    @property
+    def last_observation(self):
+        """A copy of the last observation returned (None before the first reset)."""
+        return None if self._last_obs is None else _copy_obs(self._last_obs)
+
+    @property
+    def params(self) -> EpisodeParams:
+        """The current episode's parameters (nominal ones before the first reset)."""
+        return self.sim.params if self.sim.params is not None else nominal_params(self.config)
+
+    def _make_task(self) -> Task:
+        cfg = self.config
+        return self.task_cls(
+            arcs=self.sim.arcs,
+            reward=cfg.reward,
+            tear_force=cfg.coupling.tear_force,
+            thread_target=cfg.plan.thread_target,
+            closure_target=cfg.plan.closure_target,
+            workspace=self.sim.workspace,
+            gap_rest=self.sim.gap_rest,
+        )
+
+    @staticmethod
+    def _check_action(action) -> np.ndarray:
+        a = np.asarray(action, dtype=np.float64)
+        if a.shape != (6,):
+            raise ValueError(f"action must have shape (6,), got {a.shape}")
+        if not np.all(np.isfinite(a)):
+            bad = [i for i in range(6) if not math.isfinite(a[i])]
+            raise ValueError(f"action must be finite; components {bad} are {[float(a[i]) for i in bad]}")
+        return a
+
+    @staticmethod
+    def _finite(obs) -> bool:
+        if isinstance(obs, dict):
+            return all(bool(np.all(np.isfinite(v))) for v in obs.values())
+        return bool(np.all(np.isfinite(obs)))
+
+    def _reward(self, obs, outcome, info) -> float:
+        return outcome.reward
+
+    def _vector(self, o: Observables) -> np.ndarray:
+        """The flat float32 observation of ``o`` (layout in :mod:`suture_gym.envs.spaces`)."""
+        buf = self._obs_buffer
+        ix = self.obs_index
+        arc = self.task.arc
+        st = self.task.state
+        c = arc.center
+        buf[ix["tip_pos"]] = o.tip_pos - c
+        buf[ix["tip_dir"]] = o.tip_dir
+        buf[ix["needle_normal"]] = o.needle_normal
+        buf[ix["grip_pos"]] = o.grip_pos - c
+        buf[ix["needle_vel"]] = o.needle_vel
+        buf[ix["needle_omega"]] = o.needle_omega
+        buf[ix["entry_rel"]] = arc.entry - o.tip_pos
+        buf[ix["exit_rel"]] = arc.exit - o.tip_pos
+        buf[ix["arc_progress"]] = arc.progress(o.tip_pos)
+        buf[ix["arc_distance"]] = arc.distance(o.tip_pos)
+        buf[ix["tip_sdist"]] = min(max(o.tip_sdist, -SDIST_CLIP), SDIST_CLIP)
+        buf[ix["punctured"]] = float(o.punctured)
+        buf[ix["stitch"]] = float(st.stitch)
+        buf[ix["stitch_exited"]] = float(st.exited)
+        buf[ix["tip_force"]] = o.tip_force
+        buf[ix["tissue_force"]] = o.tissue_force
+        buf[ix["haptic_force"]] = o.haptic_wrench[:3]
+        buf[ix["haptic_torque"]] = o.haptic_wrench[3:]
+        buf[ix["wound_gap"]] = o.wound_gap
+        buf[ix["thread_through"]] = o.thread_through
+        if "suture_samples" in ix:
+            buf[ix["suture_samples"]] = (o.suture_samples - c).ravel()
+        if "target_offset" in ix:
+            grip_pos, grip_quat = self.sim.grip_pose()
+            buf[ix["target_offset"]] = self._target_pos - grip_pos
+            buf[ix["target_rotation"]] = quat_rotation_vector(quat_mul(self._target_quat, quat_conj(grip_quat)))
+        if "params" in ix:
+            buf[ix["params"]] = self.params.as_array()
+        return buf.astype(np.float32)
+
+    def _observation(self, o: Observables):
+        return self._vector(o)
+
+    def _info(self, o: Observables, outcome, diverged: bool) -> dict:
+        terms = self._term_names()
+        info = {
+            "is_success": bool(outcome.success) if outcome is not None else False,
+            "punctured": bool(o.punctured),
+            "tip_force": float(o.tip_force) if math.isfinite(o.tip_force) else 0.0,
+            "wound_gap": float(o.wound_gap) if math.isfinite(o.wound_gap) else 0.0,
+            "diverged": bool(diverged),
+            "cost": float(outcome.cost) if outcome is not None else 0.0,
+            "tear": bool(outcome.tear) if outcome is not None else False,
+            "out_of_workspace": bool(outcome.out_of_workspace) if outcome is not None else False,
+            "stitch": int(self.task.state.stitch),
+        }
+        for name in terms:
+            info[f"reward_{name}"] = 0.0
+        if outcome is not None:
+            for name in terms:
+                if name in outcome.terms:
+                    info[f"reward_{name}"] = float(outcome.terms[name])
+        return info
+
+    def _term_names(self) -> tuple[str, ...]:
+        return self.task_cls.TERMS
+
+    def _markers(self) -> np.ndarray:
+        """``(P, 3)`` planned entry and exit of every stitch, m (drawn as markers, entry green, exit red)."""
+        return np.concatenate([[arc.entry, arc.exit] for arc in self.sim.arcs])
+
+
+class SutureGoalEnv(SutureEnv):
+    """Goal-conditioned variant for hindsight experience replay (HER).
+
+    Observation: ``Dict(observation=Box(...), achieved_goal=Box(G), desired_goal=Box(G))`` with the task's
+    ``GOAL_LAYOUT``. Reward terms: ``goal`` (sparse: -1 until the goal is reached, else 0; or dense, see
+    ``reward.goal``), ``tissue_force`` and ``action`` (as in :class:`SutureEnv`). :meth:`compute_reward`
+    recomputes the reward of any (achieved, desired) pair, batched, from the goals and ``info``'s
+    ``reward_tissue_force`` and ``reward_action``; the env's reward is exactly that value.
+    """
+
+    def __init__(self, task: str = "needle_insert", config=None, render_mode: str | None = None,
+                 action_mode: str | None = None) -> None:
+        super().__init__(task, config, render_mode, action_mode)
+        size = self.task_cls.GOAL_SIZE
+        self.observation_space = gym.spaces.Dict(
+            {
+                "observation": gym.spaces.Box(-np.inf, np.inf, (observation_size(self.layout),), np.float32),
+                "achieved_goal": gym.spaces.Box(-np.inf, np.inf, (size,), np.float32),
+                "desired_goal": gym.spaces.Box(-np.inf, np.inf, (size,), np.float32),
+            }
+        )
+
+    def _observation(self, o: Observables):
+        return {
+            "observation": self._vector(o),
+            "achieved_goal": self.task.achieved_goal(o).astype(np.float32),
+            "desired_goal": self.task.desired_goal().astype(np.float32),
+        }
+
+    def _term_names(self) -> tuple[str, ...]:
+        return self.task_cls.GOAL_TERMS
+
+    def _info(self, o: Observables, outcome, diverged: bool) -> dict:
+        info = super()._info(o, outcome, diverged)
+        if outcome is not None:
+            achieved = self.task.achieved_goal(o).astype(np.float32)[None, :]
+            desired = self.task.desired_goal().astype(np.float32)[None, :]
+            info["reward_goal"] = float(self._goal_term(achieved, desired)[0])
+        return info
+
+    def _reward(self, obs, outcome, info) -> float:
+        return float(self.compute_reward(obs["achieved_goal"], obs["desired_goal"], info))
+
+    def _goal_term(self, achieved: np.ndarray, desired: np.ndarray) -> np.ndarray:
+        return self.task.goal_term(achieved.astype(np.float64), desired.astype(np.float64))
+
+    def compute_reward(self, achieved_goal, desired_goal, info):
+        """Reward of ``achieved_goal`` against ``desired_goal``: ``math.fsum`` of the goal term and ``info``'s
+        ``reward_tissue_force`` and ``reward_action``.
+
+        Args:
+            achieved_goal, desired_goal: ``(G,)`` or ``(B, G)`` arrays.
+            info: one info dict, or a sequence of B of them (HER passes an array of dicts). A missing term
+                counts as 0: SB3's ``HerReplayBuffer`` passes empty dicts unless it is built with
+                ``replay_buffer_kwargs={"copy_info_dict": True}``, which keeps the tissue-force and action
+                terms in relabelled rewards.
+
+        Returns:
+            A float for ``(G,)`` goals, else a ``(B,) float64`` array.
+        """
+        achieved = np.asarray(achieved_goal, dtype=np.float64)
+        desired = np.asarray(desired_goal, dtype=np.float64)
+        single = achieved.ndim == 1
+        achieved = np.atleast_2d(achieved)
+        desired = np.atleast_2d(desired)
+        if achieved.shape != desired.shape:
+            raise ValueError(f"achieved_goal {achieved.shape} and desired_goal {desired.shape} differ in shape")
+        infos = [info] * achieved.shape[0] if isinstance(info, dict) else list(info)
+        if len(infos) != achieved.shape[0]:
+            raise ValueError(f"info holds {len(infos)} dicts for {achieved.shape[0]} goals")
+        goal = self._goal_term(achieved, desired)
+        rewards = np.array([math.fsum([float(g), i.get("reward_tissue_force", 0.0), i.get("reward_action", 0.0)])
+                            for g, i in zip(goal, infos, strict=True)])
+        return float(rewards[0]) if single else rewards

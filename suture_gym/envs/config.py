@@ -1,0 +1,586 @@
+"""Typed configuration of the suturing environments; YAML files only override the typed defaults.
+
+An :class:`EnvConfig` is a tree of frozen dataclasses. :func:`default_config` gives the defaults of a task (the
+values the registered ids use); :func:`load_config` applies overrides from a YAML file, a mapping or another
+config on top of them. Every key of an override must name a field: an unknown key raises ValueError naming its
+dotted path (``reward.puncture_bonus``), so a typo never passes silently. :func:`config_to_dict` gives the
+resolved config as plain data, to save with every run.
+
+Units are SI throughout (m, kg, s, N, Pa, rad); each field's comment states its unit.
+"""
+
+from __future__ import annotations
+
+import functools
+import math
+import os
+import typing
+from dataclasses import dataclass, field, fields, is_dataclass, replace
+from pathlib import Path
+from typing import Any, ClassVar
+
+#: Task names, in the order of the registered ids.
+TASKS: tuple[str, ...] = ("needle_insert", "suture_throw", "wound_closure")
+#: Action modes: a wrench on the needle holder, or a pose change of the holder through the virtual coupling.
+ACTION_MODES: tuple[str, ...] = ("wrench", "pose_delta")
+#: Scene kinds: one tissue pad, or two bars with a wound gap between them.
+SCENE_KINDS: tuple[str, ...] = ("pad", "wound")
+#: Goal rewards of the goal-conditioned variants.
+GOAL_REWARDS: tuple[str, ...] = ("sparse", "dense")
+
+
+def _fail(path: str, message: str) -> None:
+    raise ValueError(f"{path} {message}")
+
+
+def _real(path: str, value: Any, *, low: float | None = None, high: float | None = None, strict_low: bool = False,
+          strict_high: bool = False) -> None:
+    """Check that ``value`` is a finite real number in the given bounds; ValueError naming ``path`` otherwise."""
+    if isinstance(value, bool) or not isinstance(value, (int, float)) or not math.isfinite(value):
+        _fail(path, f"must be a finite number, got {value!r}")
+    if low is not None and (value <= low if strict_low else value < low):
+        _fail(path, f"must be {'>' if strict_low else '>='} {low}, got {value!r}")
+    if high is not None and (value >= high if strict_high else value > high):
+        _fail(path, f"must be {'<' if strict_high else '<='} {high}, got {value!r}")
+
+
+def _count(path: str, value: Any, low: int) -> None:
+    if isinstance(value, bool) or not isinstance(value, int) or value < low:
+        _fail(path, f"must be an integer >= {low}, got {value!r}")
+
+
+def _choice(path: str, value: Any, choices: tuple[str, ...]) -> None:
+    if value not in choices:
+        _fail(path, f"must be one of {list(choices)}, got {value!r}")
+
+
+def _range(path: str, value: tuple[float, float], *, low: float, strict_low: bool = True) -> None:
+    """A ``(lo, hi)`` sampling range with ``low < lo <= hi`` (or ``low <= lo`` when not strict)."""
+    for k, v in enumerate(value):
+        _real(f"{path}[{k}]", v, low=low, strict_low=strict_low)
+    if value[0] > value[1]:
+        _fail(path, f"must satisfy lo <= hi, got {list(value)}")
+
+
+class _Section:
+    """Base of the config sections: validated on construction, errors named ``<section>.<field>``."""
+
+    SECTION: ClassVar[str] = ""
+
+    def __post_init__(self) -> None:
+        self.validate(self.SECTION)
+
+    def validate(self, path: str) -> None:
+        raise NotImplementedError
+
+
+@dataclass(frozen=True)
+class TissueConfig(_Section):
+    """Tissue material (stable neo-Hookean, :class:`~suture_gym.sim.model.TissueMaterial`).
+
+    Default 3 kPa, three times the paper's 1 kPa: an 8 mm pad of it sags 0.1 mm under its own weight. It is
+    the stiffest material the solver keeps at rest at the default substep (1 ms) and cell size (2 mm): with one
+    Gauss-Seidel sweep per substep, tissue at rest starts to oscillate once ``dt sqrt(E / rho) / h`` exceeds
+    about 0.9 (measured on a 12 x 24 x 8 mm pad of 2 mm cells: 3 kPa at 1 ms stays within its 0.1 mm sag,
+    4 kPa oscillates by 0.4 mm, 30 kPa by 10 mm). Stiffer tissue needs a smaller ``solver.dt`` (10 kPa:
+    0.5 ms) or larger cells.
+    """
+
+    SECTION: ClassVar[str] = "tissue"
+
+    youngs_modulus: float = 3.0e3  # Pa
+    poisson_ratio: float = 0.45  # dimensionless, [0, 0.5]
+    density: float = 1000.0  # kg/m^3
+    damping: float = 10.0  # 1/s, mass-proportional velocity damping
+
+    def validate(self, path: str) -> None:
+        _real(f"{path}.youngs_modulus", self.youngs_modulus, low=0.0, strict_low=True)
+        _real(f"{path}.poisson_ratio", self.poisson_ratio, low=0.0, high=0.5)
+        _real(f"{path}.density", self.density, low=0.0, strict_low=True)
+        _real(f"{path}.damping", self.damping, low=0.0)
+
+
+@dataclass(frozen=True)
+class SceneConfig(_Section):
+    """Tissue geometry. Frame: gravity along -z, tissue resting on a rigid base at ``z = 0`` (bottom pinned).
+
+    ``pad``: one block ``x in [0, size_x]``, ``y in [0, size_y]``, ``z in [0, size_z]``.
+    ``wound``: two such blocks (bars) side by side along ``y`` with ``gap`` between their facing faces
+    ``y = size_y`` and ``y = size_y + gap``; the wound runs along ``x``; both end faces ``x = 0`` and
+    ``x = size_x`` of each bar are pinned (paper Fig. 5). Cells are as close to ``cell_size`` as the sizes allow.
+    """
+
+    SECTION: ClassVar[str] = "scene"
+
+    kind: str = "pad"  # "pad" or "wound"
+    size: tuple[float, float, float] = (0.008, 0.024, 0.008)  # m, (x, y, z) of the pad or of each bar
+    cell_size: float = 0.002  # m, target edge of the hexahedral cells (each split into five tets)
+    gap: float = 0.004  # m, wound gap between the bars (wound scenes only)
+
+    def validate(self, path: str) -> None:
+        _choice(f"{path}.kind", self.kind, SCENE_KINDS)
+        for k, v in enumerate(self.size):
+            _real(f"{path}.size[{k}]", v, low=0.0, strict_low=True)
+        _real(f"{path}.cell_size", self.cell_size, low=0.0, strict_low=True)
+        _real(f"{path}.gap", self.gap, low=0.0, strict_low=True)
+
+    @property
+    def cells(self) -> tuple[int, int, int]:
+        """Cell counts along (x, y, z): ``round(size / cell_size)``, at least 1."""
+        return tuple(max(1, int(round(s / self.cell_size))) for s in self.size)
+
+
+@dataclass(frozen=True)
+class NeedleConfig(_Section):
+    """The curved needle and its holder (:class:`~suture_gym.sim.needle.NeedleShape`)."""
+
+    SECTION: ClassVar[str] = "needle"
+
+    arc: str = "1/2"  # preset: "1/4", "3/8", "1/2", "5/8"
+    curvature_radius: float = 0.026 / math.pi  # m (26 mm half-circle needle)
+    wire_radius: float = 3.0e-4  # m
+    holder_mass: float = 0.02  # kg, effective mass of the holder at the grip
+    holder_inertia: float = 1.0e-6  # kg m^2, isotropic, about the grip
+    grip_fraction: float = 1.0 / 3.0  # of the arc length, from the swage
+    node_count: int = 30  # collision and coupling nodes along the arc
+    linear_damping: float = 5.0  # 1/s, velocity damping of the needle body
+    angular_damping: float = 5.0  # 1/s
+    gravity_compensation: bool = True  # the haptic device carries the needle's weight
+
+    def validate(self, path: str) -> None:
+        _choice(f"{path}.arc", self.arc, ("1/4", "3/8", "1/2", "5/8"))
+        _real(f"{path}.curvature_radius", self.curvature_radius, low=0.0, strict_low=True)
+        _real(f"{path}.wire_radius", self.wire_radius, low=0.0, strict_low=True, high=self.curvature_radius,
+              strict_high=True)
+        _real(f"{path}.holder_mass", self.holder_mass, low=0.0)
+        _real(f"{path}.holder_inertia", self.holder_inertia, low=0.0)
+        _real(f"{path}.grip_fraction", self.grip_fraction, low=0.0, high=1.0)
+        _count(f"{path}.node_count", self.node_count, 2)
+        _real(f"{path}.linear_damping", self.linear_damping, low=0.0)
+        _real(f"{path}.angular_damping", self.angular_damping, low=0.0)
+        if not isinstance(self.gravity_compensation, bool):
+            _fail(f"{path}.gravity_compensation", f"must be true or false, got {self.gravity_compensation!r}")
+
+
+@dataclass(frozen=True)
+class SutureConfig(_Section):
+    """The suture thread (:class:`~suture_gym.sim.rod.SutureParams`); ``node_count = 0`` means no thread."""
+
+    SECTION: ClassVar[str] = "suture"
+
+    length: float = 0.03  # m
+    node_count: int = 0  # nodes along the thread (0: needle only)
+    radius: float = 1.0e-4  # m (3-0 suture)
+
+    def validate(self, path: str) -> None:
+        _real(f"{path}.length", self.length, low=0.0, strict_low=True)
+        if self.node_count != 0:
+            _count(f"{path}.node_count", self.node_count, 2)
+        _real(f"{path}.radius", self.radius, low=0.0, strict_low=True)
+
+
+@dataclass(frozen=True)
+class CouplingConfig(_Section):
+    """Needle/suture-tissue interaction (:class:`~suture_gym.sim.coupling.CouplingParams`).
+
+    Forces scale with the tissue's stiffness: on the 3 kPa default tissue the scripted surgeon's needle needs
+    3-11 mN while it cuts along the plan, so the puncture threshold is 5 mN (a puncture lands within about
+    1 mm of the planned entry; at 10 mN the tip slides 1.3 mm, at 20 mN it slips in without puncturing) and
+    the tear force 0.1 N, ten times the working forces. Multiplied by 300, these are the forces of a
+    1 MPa tissue: 1.5 N to puncture, 30 N to tear.
+    """
+
+    SECTION: ClassVar[str] = "coupling"
+
+    puncture_force: float = 0.005  # N, tip force that pierces the surface
+    tear_force: float = 0.1  # N, coupling force that tears the tissue (ends the episode)
+    resistance_eps: float = 3.0e-4  # m, resistance layer of the signed distance
+    path_spacing_min: float = 1.2e-3  # m, l of paper section 4.3
+    path_spacing_max: float = 1.7e-3  # m, h
+    needle_axial_friction: float = 1.5  # N/m of needle inside the tissue
+
+    def validate(self, path: str) -> None:
+        for name in ("puncture_force", "tear_force", "resistance_eps", "path_spacing_min", "path_spacing_max"):
+            _real(f"{path}.{name}", getattr(self, name), low=0.0, strict_low=True)
+        _real(f"{path}.needle_axial_friction", self.needle_axial_friction, low=0.0)
+        if self.path_spacing_min > self.path_spacing_max:
+            _fail(f"{path}.path_spacing_min", f"({self.path_spacing_min}) must not exceed path_spacing_max "
+                  f"({self.path_spacing_max})")
+
+
+@dataclass(frozen=True)
+class SolverConfig(_Section):
+    """Time stepping: one env step is ``substeps`` solver substeps of ``dt``."""
+
+    SECTION: ClassVar[str] = "solver"
+
+    dt: float = 1.0e-3  # s, substep
+    substeps: int = 5  # substeps per env step
+    iterations: int = 1  # Gauss-Seidel sweeps per substep
+    max_speed: float = 20.0  # m/s, divergence threshold
+
+    def validate(self, path: str) -> None:
+        _real(f"{path}.dt", self.dt, low=0.0, strict_low=True)
+        _count(f"{path}.substeps", self.substeps, 1)
+        _count(f"{path}.iterations", self.iterations, 1)
+        _real(f"{path}.max_speed", self.max_speed, low=0.0, strict_low=True)
+
+
+@dataclass(frozen=True)
+class ActionConfig(_Section):
+    """How the 6 action components in [-1, 1] become a command.
+
+    ``wrench``: ``[force (3) N, torque (3) N m]`` on the needle holder = action times ``(max_force x3,
+    max_torque x3)``, world frame, torque about the grip point, held over the env step.
+    ``pose_delta``: the holder's target pose moves by ``action[:3] * max_translation`` (m, world frame) and
+    turns by the rotation vector ``action[3:] * max_rotation`` (rad, world frame, about the grip point) each
+    env step; the virtual coupling (spring-damper with the stiffnesses below) pulls the needle towards it.
+    Finite actions outside [-1, 1] are applied as given (scaled linearly, not clipped); wrap the env in
+    :class:`gymnasium.wrappers.ClipAction` to enforce the box.
+    """
+
+    SECTION: ClassVar[str] = "action"
+
+    mode: str = "wrench"  # "wrench" or "pose_delta"
+    max_force: float = 0.05  # N per component (half the tear force)
+    max_torque: float = 2.0e-4  # N m per component
+    max_translation: float = 2.0e-4  # m per env step and component (pose_delta)
+    max_rotation: float = 0.03  # rad per env step and component (pose_delta)
+    coupling_linear_stiffness: float = 500.0  # N/m (pose_delta)
+    coupling_linear_damping: float = 6.0  # N s/m
+    coupling_angular_stiffness: float = 0.025  # N m/rad
+    coupling_angular_damping: float = 3.0e-4  # N m s/rad
+
+    def validate(self, path: str) -> None:
+        _choice(f"{path}.mode", self.mode, ACTION_MODES)
+        for f in fields(self):
+            if f.name != "mode":
+                _real(f"{path}.{f.name}", getattr(self, f.name), low=0.0, strict_low=True)
+
+
+@dataclass(frozen=True)
+class PlanConfig(_Section):
+    """The planned stitches: each is the needle's own circle turned about its centre (module tasks.geometry).
+
+    The circle lies in a plane ``x = const`` (normal along the wound), its centre ``center_height`` (as a
+    fraction of the needle's curvature radius) above the top surface; for a wound it is centred over the gap.
+    Stitch ``i`` of ``stitches`` lies at ``x = size_x (i + 1) / (stitches + 1)``.
+    """
+
+    SECTION: ClassVar[str] = "plan"
+
+    center_height: float = 0.5  # fraction of the curvature radius, in (0, 1)
+    stitches: int = 1  # planned stitches along x
+    start_angle: float = 0.15  # rad, the tip starts this far before the entry point along the circle
+    thread_target: float = 0.01  # m, thread to pull through each stitch (tasks with a thread)
+    closure_target: float = 0.6  # fraction of the initial wound gap to reach (wound_closure)
+
+    def validate(self, path: str) -> None:
+        _real(f"{path}.center_height", self.center_height, low=0.0, high=1.0, strict_low=True, strict_high=True)
+        _count(f"{path}.stitches", self.stitches, 1)
+        _real(f"{path}.start_angle", self.start_angle, low=0.0)
+        _real(f"{path}.thread_target", self.thread_target, low=0.0, strict_low=True)
+        _real(f"{path}.closure_target", self.closure_target, low=0.0, high=1.0, strict_low=True)
+
+
+@dataclass(frozen=True)
+class RandomizationConfig(_Section):
+    """Seeded domain randomisation, sampled at every reset from the env's ``np_random`` in a fixed order.
+
+    Scale ranges ``(lo, hi)`` multiply the nominal value by a log-uniform factor (``(1, 1)`` disables one);
+    noises are half-widths of uniform offsets per axis (0 disables). The sampled values are in
+    ``info["params"]`` at reset and, with ``observation.privileged``, appended to the observation.
+    """
+
+    SECTION: ClassVar[str] = "randomization"
+
+    youngs_modulus_scale: tuple[float, float] = (1.0, 1.0)  # factor on tissue.youngs_modulus
+    puncture_force_scale: tuple[float, float] = (1.0, 1.0)  # factor on coupling.puncture_force
+    gap_scale: tuple[float, float] = (1.0, 1.0)  # factor on scene.gap (wound scenes)
+    needle_position_noise: float = 0.0  # m, per axis, of the needle's start pose
+    needle_rotation_noise: float = 0.0  # rad, per rotation-vector component of the start orientation
+
+    def validate(self, path: str) -> None:
+        for name in ("youngs_modulus_scale", "puncture_force_scale", "gap_scale"):
+            _range(f"{path}.{name}", getattr(self, name), low=0.0)
+        _real(f"{path}.needle_position_noise", self.needle_position_noise, low=0.0)
+        _real(f"{path}.needle_rotation_noise", self.needle_rotation_noise, low=0.0, high=math.pi)
+
+
+@dataclass(frozen=True)
+class RewardConfig(_Section):
+    """Weights (dimensionless reward per unit of each term's measure) and tolerances of the reward terms.
+
+    See :mod:`suture_gym.tasks` for each term's formula; a term whose weight is 0 is reported as 0.
+    """
+
+    SECTION: ClassVar[str] = "reward"
+
+    path: float = 0.05  # per step at full deviation: -w d / (d + path_scale)
+    path_scale: float = 1.0e-3  # m
+    progress: float = 5.0  # per unit of arc progress (potential-based)
+    entry: float = 2.0  # once, at the first puncture of a stitch: w max(0, 1 - e / tolerance)
+    exit: float = 2.0  # once, when the tip comes out: w max(0, 1 - e / tolerance)
+    puncture: float = 1.0  # once per puncture: +w at a planned access point, -w elsewhere
+    thread: float = 2.0  # per target length of thread pulled through
+    closure: float = 5.0  # per initial wound gap closed
+    success: float = 5.0  # once, when the task succeeds
+    tissue_force: float = 0.5  # per step at cost 1
+    action: float = 0.01  # per step: -w mean(a^2)
+    access_tolerance: float = 1.5e-3  # m, how close a puncture or exit must be to its planned point
+    safe_force: float = 0.02  # N, coupling force below which the tissue-force cost is 0
+    goal: str = "sparse"  # goal-conditioned variants: "sparse" (-1 until the goal is met, else 0) or "dense"
+
+    def validate(self, path: str) -> None:
+        for f in fields(self):
+            if f.name in ("goal",):
+                continue
+            strict = f.name in ("path_scale", "access_tolerance", "safe_force")
+            _real(f"{path}.{f.name}", getattr(self, f.name), low=0.0, strict_low=strict)
+        _choice(f"{path}.goal", self.goal, GOAL_REWARDS)
+
+
+@dataclass(frozen=True)
+class TerminationConfig(_Section):
+    """Episode ends besides success and the time limit (which registration sets)."""
+
+    SECTION: ClassVar[str] = "termination"
+
+    workspace_margin: float = 0.015  # m, the tip must stay within the tissue's box grown by this margin
+    end_on_tear: bool = True  # terminate when the tissue tears (coupling force above coupling.tear_force)
+
+    def validate(self, path: str) -> None:
+        _real(f"{path}.workspace_margin", self.workspace_margin, low=0.0, strict_low=True)
+        if not isinstance(self.end_on_tear, bool):
+            _fail(f"{path}.end_on_tear", f"must be true or false, got {self.end_on_tear!r}")
+
+
+@dataclass(frozen=True)
+class ObservationConfig(_Section):
+    """What the observation vector holds beyond the fixed layout (see :mod:`suture_gym.envs.spaces`)."""
+
+    SECTION: ClassVar[str] = "observation"
+
+    suture_samples: int = 0  # thread nodes sampled evenly from the swage to the tail (0: none)
+    privileged: bool = False  # append the randomised parameters
+
+    def validate(self, path: str) -> None:
+        _count(f"{path}.suture_samples", self.suture_samples, 0)
+        if not isinstance(self.privileged, bool):
+            _fail(f"{path}.privileged", f"must be true or false, got {self.privileged!r}")
+
+
+@dataclass(frozen=True)
+class RenderConfig(_Section):
+    """``render_mode="rgb_array"`` image size and supersampling."""
+
+    SECTION: ClassVar[str] = "render"
+
+    width: int = 320  # px (even, for video encoding)
+    height: int = 240  # px (even)
+    ssaa: int = 2  # supersampling factor
+
+    def validate(self, path: str) -> None:
+        _count(f"{path}.width", self.width, 2)
+        _count(f"{path}.height", self.height, 2)
+        _count(f"{path}.ssaa", self.ssaa, 1)
+
+
+@dataclass(frozen=True)
+class EnvConfig:
+    """Everything an environment needs; see each section's class for its fields and units."""
+
+    task: str = "needle_insert"
+    tissue: TissueConfig = field(default_factory=TissueConfig)
+    scene: SceneConfig = field(default_factory=SceneConfig)
+    needle: NeedleConfig = field(default_factory=NeedleConfig)
+    suture: SutureConfig = field(default_factory=SutureConfig)
+    coupling: CouplingConfig = field(default_factory=CouplingConfig)
+    solver: SolverConfig = field(default_factory=SolverConfig)
+    action: ActionConfig = field(default_factory=ActionConfig)
+    plan: PlanConfig = field(default_factory=PlanConfig)
+    randomization: RandomizationConfig = field(default_factory=RandomizationConfig)
+    reward: RewardConfig = field(default_factory=RewardConfig)
+    termination: TerminationConfig = field(default_factory=TerminationConfig)
+    observation: ObservationConfig = field(default_factory=ObservationConfig)
+    render: RenderConfig = field(default_factory=RenderConfig)
+
+    def __post_init__(self) -> None:
+        _choice("task", self.task, TASKS)
+        for f in fields(self):
+            section = getattr(self, f.name)
+            if f.name != "task" and type(section) is not _field_types(EnvConfig)[f.name]:
+                _fail(f.name, f"must be a {_field_types(EnvConfig)[f.name].__name__}, got {type(section).__name__}")
+        if self.scene.kind == "pad" and self.task != "needle_insert":
+            _fail("scene.kind", f"must be 'wound' for task {self.task!r}, got 'pad'")
+        if self.task != "needle_insert" and self.suture.node_count == 0:
+            _fail("suture.node_count", f"must be >= 2 for task {self.task!r} (the thread is pulled through)")
+
+
+#: Per-task differences from the typed defaults above (which are NeedleInsert's).
+_TASK_DEFAULTS: dict[str, dict] = {
+    "needle_insert": {},
+    "suture_throw": {
+        "task": "suture_throw",
+        "scene": {"kind": "wound", "size": (0.012, 0.012, 0.008)},
+        "suture": {"node_count": 31, "length": 0.03},
+        "observation": {"suture_samples": 4},
+    },
+    "wound_closure": {
+        "task": "wound_closure",
+        "scene": {"kind": "wound", "size": (0.03, 0.012, 0.008)},
+        "suture": {"node_count": 61, "length": 0.06},
+        "plan": {"stitches": 3},
+        "observation": {"suture_samples": 4},
+    },
+}
+
+
+def default_config(task: str) -> EnvConfig:
+    """The typed defaults of ``task`` (one of :data:`TASKS`): what the registered ids use."""
+    _choice("task", task, TASKS)
+    return apply_overrides(EnvConfig(), _TASK_DEFAULTS[task])
+
+
+@functools.cache
+def _field_types(cls) -> dict[str, Any]:
+    """Resolved types of the dataclass fields of ``cls`` (class variables excluded)."""
+    hints = typing.get_type_hints(cls)
+    return {f.name: hints[f.name] for f in fields(cls)}
+
+
+def _coerce(path: str, value: Any, kind: Any, current: Any) -> Any:
+    """``value`` converted to the field type ``kind`` (nested dataclasses merge into ``current``)."""
+    if is_dataclass(kind):
+        if not isinstance(value, dict):
+            _fail(path, f"must be a mapping of {kind.__name__} fields, got {type(value).__name__}")
+        return _merge(path + ".", current, value)
+    origin = typing.get_origin(kind)
+    if origin is tuple:
+        args = typing.get_args(kind)
+        if not isinstance(value, (list, tuple)) or len(value) != len(args):
+            _fail(path, f"must be a list of {len(args)} numbers, got {value!r}")
+        return tuple(_coerce(f"{path}[{k}]", v, a, None) for k, (v, a) in enumerate(zip(value, args, strict=True)))
+    if kind is float:
+        if isinstance(value, bool) or not isinstance(value, (int, float)):
+            _fail(path, f"must be a number, got {value!r}")
+        return float(value)
+    if kind is int:
+        if isinstance(value, bool) or not isinstance(value, int):
+            _fail(path, f"must be an integer, got {value!r}")
+        return value
+    if kind is bool:
+        if not isinstance(value, bool):
+            _fail(path, f"must be true or false, got {value!r}")
+        return value
+    if kind is str:
+        if not isinstance(value, str):
+            _fail(path, f"must be a string, got {value!r}")
+        return value
+    raise TypeError(f"{path}: unsupported config field type {kind!r}")
+
+
+def _merge(prefix: str, base: Any, overrides: dict) -> Any:
+    """A copy of dataclass ``base`` with ``overrides`` applied; unknown keys raise ValueError naming them."""
+    types = _field_types(type(base))
+    unknown = sorted(str(k) for k in overrides if k not in types)
+    if unknown:
+        names = ", ".join(f"'{prefix}{k}'" for k in unknown)
+        raise ValueError(f"unknown config key(s) {names}; known keys here: {sorted(types)}")
+    changes = {key: _coerce(prefix + key, value, types[key], getattr(base, key)) for key, value in overrides.items()}
+    return replace(base, **changes)
+
+
+def apply_overrides(config: EnvConfig, overrides: dict) -> EnvConfig:
+    """``config`` with the nested mapping ``overrides`` applied (validated; unknown keys raise ValueError)."""
+    if not isinstance(overrides, dict):
+        raise ValueError(f"config overrides must be a mapping, got {type(overrides).__name__}")
+    return _merge("", config, overrides)
+
+
+def read_yaml(path: str | os.PathLike) -> dict:
+    """The mapping stored in the YAML file ``path`` (an empty file is an empty mapping)."""
+    import yaml
+
+    with open(path, encoding="utf-8") as stream:
+        data = yaml.safe_load(stream)
+    if data is None:
+        return {}
+    if not isinstance(data, dict):
+        raise ValueError(f"{path} must hold a mapping of config sections, got {type(data).__name__}")
+    return data
+
+
+def load_config(task: str, source: EnvConfig | dict | str | os.PathLike | None = None) -> EnvConfig:
+    """The config of ``task``: its defaults, overridden by ``source``.
+
+    Args:
+        task: one of :data:`TASKS`.
+        source: None (defaults), an :class:`EnvConfig` (used as is; its ``task`` must match), a nested mapping
+            or the path of a YAML file holding one. A ``task`` key, if present, must name ``task``.
+
+    Raises:
+        ValueError: unknown keys (named by dotted path), wrong types, out-of-range values, or a task mismatch.
+    """
+    if isinstance(source, EnvConfig):
+        config = source
+    else:
+        overrides = {}
+        if isinstance(source, (str, os.PathLike)):
+            overrides = read_yaml(Path(source))
+        elif isinstance(source, dict):
+            overrides = source
+        elif source is not None:
+            kind = type(source).__name__
+            raise ValueError(f"config must be None, an EnvConfig, a mapping or a YAML path, got {kind}")
+        config = apply_overrides(default_config(task), overrides)
+    if config.task != task:
+        raise ValueError(f"config task is {config.task!r} but the environment is {task!r}")
+    return config
+
+
+def config_to_dict(config: Any) -> dict:
+    """The config as plain nested dicts, lists and scalars (JSON/YAML-serialisable)."""
+
+    def plain(value):
+        if is_dataclass(value):
+            return {f.name: plain(getattr(value, f.name)) for f in fields(value)}
+        if isinstance(value, tuple):
+            return [plain(v) for v in value]
+        return value
+
+    return plain(config)
+
+
+def save_config(config: EnvConfig, path: str | os.PathLike) -> None:
+    """Write the resolved ``config`` to ``path`` as YAML (load it back with :func:`load_config`)."""
+    import yaml
+
+    with open(path, "w", encoding="utf-8") as stream:
+        yaml.safe_dump(config_to_dict(config), stream, sort_keys=False)
+
+
+__all__ = [
+    "ACTION_MODES",
+    "TASKS",
+    "ActionConfig",
+    "CouplingConfig",
+    "EnvConfig",
+    "NeedleConfig",
+    "ObservationConfig",
+    "PlanConfig",
+    "RandomizationConfig",
+    "RenderConfig",
+    "RewardConfig",
+    "SceneConfig",
+    "SolverConfig",
+    "SutureConfig",
+    "TerminationConfig",
+    "TissueConfig",
+    "apply_overrides",
+    "config_to_dict",
+    "default_config",
+    "load_config",
+    "read_yaml",
+    "save_config",
+]

@@ -1,0 +1,115 @@
+"""Adapter from :class:`~suture_gym.envs.vector.SutureVectorEnv` to Stable-Baselines3's ``VecEnv``.
+
+Stable-Baselines3 (and torch) are an optional extra (``pip install suture_gym[train]``); this is the only module
+of the package that imports them.
+
+:func:`make_sb3_vec_env` builds the batched env in ``SAME_STEP`` autoreset mode and wraps it: SB3's conventions
+follow (an env that finishes resets within the step, its last observation is ``infos[i]["terminal_observation"]``
+and ``infos[i]["TimeLimit.truncated"]`` marks a time-limit end), and ``monitor=True`` adds SB3's ``VecMonitor``
+so episode returns and lengths reach the logger. Goal-conditioned envs work with ``HerReplayBuffer``:
+``env_method("compute_reward", ...)`` reaches the envs' batched ``compute_reward``.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Sequence
+from typing import Any
+
+import numpy as np
+from gymnasium.vector import AutoresetMode
+from stable_baselines3.common.vec_env import VecEnv, VecMonitor
+
+from suture_gym.envs.vector import SutureVectorEnv
+
+
+class SB3VecEnv(VecEnv):
+    """SB3 ``VecEnv`` view of a :class:`~suture_gym.envs.vector.SutureVectorEnv` in ``SAME_STEP`` mode.
+
+    Args:
+        vector_env: the batched env; its ``metadata["autoreset_mode"]`` must be ``SAME_STEP``.
+    """
+
+    def __init__(self, vector_env: SutureVectorEnv) -> None:
+        if not isinstance(vector_env, SutureVectorEnv):
+            raise ValueError(f"vector_env must be a SutureVectorEnv, got {type(vector_env).__name__}")
+        if vector_env.metadata["autoreset_mode"] != AutoresetMode.SAME_STEP:
+            raise ValueError("vector_env must use AutoresetMode.SAME_STEP (make_sb3_vec_env builds one)")
+        self.vector_env = vector_env
+        self._actions: np.ndarray | None = None
+        super().__init__(vector_env.num_envs, vector_env.single_observation_space, vector_env.single_action_space)
+
+    def reset(self):
+        """Reset every env with the seeds and options set through ``seed()`` / ``set_options()``."""
+        options = [dict(o) for o in self._options]
+        results = self.vector_env.reset_each(list(self._seeds), options)
+        for i, (_, info) in enumerate(results):
+            self.reset_infos[i] = info
+        self._reset_seeds()
+        self._reset_options()
+        return self.vector_env.batch([obs for obs, _ in results])
+
+    def step_async(self, actions: np.ndarray) -> None:
+        self._actions = np.asarray(actions)
+
+    def step_wait(self):
+        if self._actions is None:
+            raise RuntimeError("step_async must be called before step_wait")
+        results = self.vector_env.step_each(self._actions)
+        self._actions = None
+        infos: list[dict[str, Any]] = []
+        for i, r in enumerate(results):
+            if r.final_info is not None:
+                info = dict(r.final_info)
+                info["terminal_observation"] = r.final_obs
+                info["TimeLimit.truncated"] = bool(r.truncated and not r.terminated)
+                self.reset_infos[i] = r.info
+            else:
+                info = dict(r.info)
+            infos.append(info)
+        obs = self.vector_env.batch([r.obs for r in results])
+        rewards = np.array([r.reward for r in results], dtype=np.float32)
+        dones = np.array([r.terminated or r.truncated for r in results], dtype=np.bool_)
+        return obs, rewards, dones, infos
+
+    def close(self) -> None:
+        self.vector_env.close()
+
+    def get_images(self) -> Sequence[np.ndarray | None]:
+        return [env.render() for env in self.vector_env.envs]
+
+    def get_attr(self, attr_name: str, indices=None) -> list[Any]:
+        return [getattr(env, attr_name) for env in self._targets(indices)]
+
+    def set_attr(self, attr_name: str, value: Any, indices=None) -> None:
+        for env in self._targets(indices):
+            setattr(env, attr_name, value)
+
+    def env_method(self, method_name: str, *method_args, indices=None, **method_kwargs) -> list[Any]:
+        return [getattr(env, method_name)(*method_args, **method_kwargs) for env in self._targets(indices)]
+
+    def env_is_wrapped(self, wrapper_class, indices=None) -> list[bool]:
+        return [False for _ in self._targets(indices)]
+
+    def _targets(self, indices) -> list:
+        if getattr(self, "vector_env", None) is None:
+            return []
+        envs = self.vector_env.envs
+        if indices is None:
+            return list(envs)
+        if isinstance(indices, int):
+            return [envs[indices]]
+        return [envs[i] for i in indices]
+
+
+def make_sb3_vec_env(task: str = "needle_insert", num_envs: int = 1, *, monitor: bool = True, **kwargs) -> VecEnv:
+    """An SB3 ``VecEnv`` of ``num_envs`` batched suturing envs of ``task``.
+
+    Keyword arguments go to :class:`~suture_gym.envs.vector.SutureVectorEnv` (``config``, ``action_mode``,
+    ``goal_conditioned``, ``max_episode_steps``, ``render_mode``). With ``monitor`` the result is wrapped in
+    SB3's ``VecMonitor`` (episode returns and lengths in ``info["episode"]``).
+    """
+    if "autoreset_mode" in kwargs:
+        raise ValueError("make_sb3_vec_env always uses AutoresetMode.SAME_STEP; do not pass autoreset_mode")
+    vector_env = SutureVectorEnv(task, num_envs, autoreset_mode=AutoresetMode.SAME_STEP, **kwargs)
+    env = SB3VecEnv(vector_env)
+    return VecMonitor(env) if monitor else env

@@ -1,0 +1,218 @@
+"""Environment benchmarks (env steps per second of every registered id, and of the batched vector env) and two
+end-to-end checks that the tasks can be done: the scripted surgeon's bite accuracy in NeedleInsert and its
+thread pulled through in SutureThrow.
+
+Each benchmark builds the env with its default config (``gym.make(id)``, so the registered wrappers are
+timed too), warms up (numba compilation excluded) and then times env steps on one thread. Two workloads:
+
+* ``env_steps_per_s``: uniformly random actions from a seeded action space, resetting whenever an episode
+  ends (the resets' time included), the usual definition;
+* ``env_steps_per_s_scripted``: the scripted surgeon (:meth:`~suture_gym.envs.SutureEnv.scripted_action`)
+  turning the needle along the planned arc, so the needle is inside the tissue most of the time (path
+  growth, node-path rows), the heavier case.
+
+``substep_ms`` is the median over env steps of the solver time of the step divided by its substeps;
+``collision_fraction`` and ``solver_fraction`` are the detection and projection shares of the solver time.
+"""
+
+from __future__ import annotations
+
+import math
+import time
+
+import gymnasium as gym
+import numpy as np
+
+import suture_gym.envs  # noqa: F401  (registers the ids)
+from suture_gym.envs import ENV_IDS
+from suture_gym.envs.vector import SutureVectorEnv
+from suture_gym.measure.registry import CheckResult, benchmark, check
+
+WARMUP_STEPS = 50
+TIMED_STEPS = 600
+VECTOR_ENVS = 4
+
+
+def _random_run(env: gym.Env, steps: int, seed: int) -> tuple[np.ndarray, np.ndarray, float]:
+    """Step ``env`` with seeded random actions; returns (per-step wall s, per-step solver s, total wall s)."""
+    sim = env.unwrapped.sim
+    env.action_space.seed(seed)
+    env.reset(seed=seed)
+    wall = np.empty(steps)
+    solver = np.empty(steps)
+    start = time.perf_counter()
+    for k in range(steps):
+        before = sum(sim.timings.values()) if sim.timings is not None else 0.0
+        t0 = time.perf_counter()
+        _, _, terminated, truncated, _ = env.step(env.action_space.sample())
+        if terminated or truncated:
+            env.reset()
+        wall[k] = time.perf_counter() - t0
+        solver[k] = (sum(sim.timings.values()) - before) if sim.timings is not None else 0.0
+    return wall, solver, time.perf_counter() - start
+
+
+def _scripted_run(env: gym.Env, steps: int, seed: int) -> float:
+    """Wall time (s) of ``steps`` steps of the scripted surgeon, restarting each episode when it ends."""
+    unwrapped = env.unwrapped
+    rate = 2.0  # rad/s, tip angle advance of the scripted surgeon
+    env.reset(seed=seed)
+    angle = unwrapped.sim.arcs[0].entry_angle - unwrapped.config.plan.start_angle
+    start = time.perf_counter()
+    for _ in range(steps):
+        angle += rate * unwrapped.sim.control_dt
+        _, _, terminated, truncated, _ = env.step(unwrapped.scripted_action(angle))
+        if terminated or truncated:
+            env.reset()
+            angle = unwrapped.sim.arcs[0].entry_angle - unwrapped.config.plan.start_angle
+    return time.perf_counter() - start
+
+
+def _bench_env(env_id: str) -> dict:
+    env = gym.make(env_id)
+    sim = env.unwrapped.sim
+    _random_run(env, WARMUP_STEPS, seed=1)
+    _scripted_run(env, WARMUP_STEPS, seed=1)
+    sim.timings = {}
+    wall, solver, total = _random_run(env, TIMED_STEPS, seed=0)
+    timings = dict(sim.timings)
+    sim.timings = None
+    scripted = _scripted_run(env, TIMED_STEPS, seed=0)
+    model = sim.model
+    solver_total = sum(timings.values())
+    env.close()
+    return {
+        "tets": model.tissue.tet_count,
+        "particles": model.tissue.particle_count,
+        "strand_nodes": model.coupling.strand_node_count,
+        "substep_ms": float(np.median(solver)) / sim.substeps * 1e3,
+        "substeps_per_s": sim.substeps / float(np.median(solver)),
+        "collision_fraction": timings.get("detect", 0.0) / solver_total,
+        "solver_fraction": timings.get("project", 0.0) / solver_total,
+        "env_steps_per_s": TIMED_STEPS / total,
+        "env_steps_per_s_scripted": TIMED_STEPS / scripted,
+        "env_step_ms_median": float(np.median(wall)) * 1e3,
+        "substeps_per_env_step": sim.substeps,
+        "dt_s": sim.dt,
+        "env_id": env_id,
+        "workload": "seeded uniform random actions, resets included; scripted: needle turned along the plan",
+    }
+
+
+def _register_env_benchmarks() -> None:
+    for env_id in ENV_IDS:
+        name = "env_" + env_id.split("/")[1].split("-")[0]
+        benchmark(name)(lambda env_id=env_id: _bench_env(env_id))
+
+
+_register_env_benchmarks()
+
+
+def _scripted_episode(env_id: str, turn_rate: float, pull_speed: float) -> dict:
+    """Run the scripted surgeon through one episode of ``env_id`` (seed 0, default config, wrench actions):
+    turn the needle about its centre along the plan at ``turn_rate`` rad/s until the swage is out, then move
+    the holder along the stitch's pull direction at ``pull_speed`` m/s (the action's force limit bounds the
+    pull). Returns the recorded entry and exit errors (m), the thread pulled through (m) and the end flags."""
+    env = gym.make(env_id)
+    unwrapped = env.unwrapped
+    sim = unwrapped.sim
+    env.reset(seed=0)
+    arc = sim.arcs[0]
+    angle = arc.entry_angle - unwrapped.config.plan.start_angle
+    turn_end = arc.exit_angle + sim.model.needle.shape.arc_angle + 0.3
+    info, thread = {}, 0.0
+    steps = 0
+    while steps < env.spec.max_episode_steps:
+        steps += 1
+        if angle < turn_end:
+            angle += turn_rate * sim.control_dt
+            action = unwrapped.scripted_action(angle)
+        else:
+            grip, quat = sim.grip_pose()
+            action = unwrapped.action_toward(grip + pull_speed * sim.control_dt * arc.pull_direction, quat)
+        _, _, terminated, truncated, info = env.step(action)
+        thread = max(thread, sim.thread_through())
+        if terminated or truncated:
+            break
+    state = unwrapped.task.state
+    result = {
+        "entry_error_m": float(np.linalg.norm(state.entry_point - arc.entry)),
+        "exit_error_m": float(np.linalg.norm(state.exit_point - arc.exit)),
+        "thread_through_m": thread,
+        "is_success": bool(info.get("is_success", False)),
+        "diverged": bool(info.get("diverged", False)),
+        "tear": bool(info.get("tear", False)),
+        "env_steps": steps,
+    }
+    env.close()
+    return result
+
+
+def _scripted_settings(env_id: str, turn_rate: float, pull_speed: float) -> dict:
+    from suture_gym.envs.config import config_to_dict
+
+    config = gym.make(env_id).unwrapped.config
+    return {"env_id": env_id, "seed": 0, "turn_rate_rad_s": turn_rate, "pull_speed_m_s": pull_speed,
+            "turn_end": "exit angle + needle arc + 0.3 rad", "config": config_to_dict(config)}
+
+
+@check("env_needle_insert_scripted_accuracy")
+def check_needle_insert_scripted_accuracy() -> CheckResult:
+    """The scripted surgeon's bite in NeedleInsert: the larger of the entry and exit errors (material points
+    against the planned markers) must be within the task's access tolerance, and the episode must succeed."""
+    env_id, rate = "SutureGym/NeedleInsert-v0", 2.0
+    run = _scripted_episode(env_id, rate, 0.0)
+    tolerance = gym.make(env_id).unwrapped.config.reward.access_tolerance
+    measured = max(run["entry_error_m"], run["exit_error_m"])
+    if not run["is_success"]:
+        measured = math.inf
+    return CheckResult("env_needle_insert_scripted_accuracy", measured, 0.0, tolerance, "m", "<=",
+                       _scripted_settings(env_id, rate, 0.0), run)
+
+
+@check("env_suture_throw_scripted_thread")
+def check_suture_throw_scripted_thread() -> CheckResult:
+    """The scripted surgeon's stitch in SutureThrow: thread pulled through the far edge's exit (m), at least
+    the task's target, with the episode successful (entry and exit within tolerance) and no divergence."""
+    env_id, rate, speed = "SutureGym/SutureThrow-v0", 1.0, 0.02
+    run = _scripted_episode(env_id, rate, speed)
+    target = gym.make(env_id).unwrapped.config.plan.thread_target
+    measured = run["thread_through_m"] if run["is_success"] and not run["diverged"] else -math.inf
+    return CheckResult("env_suture_throw_scripted_thread", measured, target, 0.0, "m", ">=",
+                       _scripted_settings(env_id, rate, speed), run)
+
+
+@benchmark("vector_env")
+def bench_vector_env() -> dict:
+    """:class:`~suture_gym.envs.vector.SutureVectorEnv` of NeedleInsert with 4 envs, random actions."""
+    env = SutureVectorEnv("needle_insert", VECTOR_ENVS, max_episode_steps=300)
+    env.action_space.seed(0)
+    env.reset(seed=0)
+    for _ in range(WARMUP_STEPS):
+        env.step(env.action_space.sample())
+    timings: dict = {}
+    for single in env.envs:
+        single.sim.timings = timings
+    steps = TIMED_STEPS // VECTOR_ENVS
+    start = time.perf_counter()
+    for _ in range(steps):
+        env.step(env.action_space.sample())
+    elapsed = time.perf_counter() - start
+    sim = env.envs[0].sim
+    model = sim.model
+    env.close()
+    solver_total = sum(timings.values())
+    substeps = steps * VECTOR_ENVS * sim.substeps
+    return {
+        "tets": model.tissue.tet_count * VECTOR_ENVS,
+        "particles": model.tissue.particle_count * VECTOR_ENVS,
+        "strand_nodes": model.coupling.strand_node_count * VECTOR_ENVS,
+        "substep_ms": solver_total / substeps * 1e3,
+        "substeps_per_s": substeps / elapsed,
+        "collision_fraction": timings.get("detect", 0.0) / solver_total,
+        "solver_fraction": timings.get("project", 0.0) / solver_total,
+        "env_steps_per_s": VECTOR_ENVS * steps / elapsed,
+        "num_envs": VECTOR_ENVS,
+        "env_id": "SutureGym/NeedleInsert-v0",
+        "workload": "seeded uniform random actions, NEXT_STEP autoreset, time limit 300; substep_ms is a mean",
+    }

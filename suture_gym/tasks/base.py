@@ -1,0 +1,387 @@
+"""What a task reads (:class:`Observables`), and the machinery shared by the tasks: named reward terms that sum
+exactly to the reward, events (punctures, exits), stitch bookkeeping, success, failure and goals.
+
+Tasks never touch the physics: the simulation facade hands them an :class:`Observables` snapshot (copies of
+plain arrays, SI units) after every env step, and they return the reward terms and the episode flags.
+
+Reward terms (each reported as ``info["reward_<name>"]``; a task uses a subset, in the order of its ``TERMS``;
+``w_*`` are the :class:`~suture_gym.envs.config.RewardConfig` weights):
+
+* ``path``: ``-w_path d / (d + path_scale)`` with ``d`` the tip's distance (m) to the current planned circle,
+  until the stitch's final exit (bounded in ``(-w_path, 0]``).
+* ``progress``: ``w_progress (Phi' - Phi)``, potential-based shaping with ``Phi = stitch + clip(p, 0, 1)`` once
+  the current stitch is punctured (``Phi = stitch`` before, ``stitch + 1`` after its final exit) and ``p`` the
+  tip's fraction of the current planned arc (0 at the entry, 1 at the exit).
+* ``entry``: once per stitch, at its first puncture: ``w_entry max(0, 1 - e / access_tolerance)``, ``e`` the
+  distance (m) from the puncture to the planned entry.
+* ``exit``: once per stitch, when the tip comes out through the last planned surface: same form with the
+  planned exit.
+* ``puncture``: at every puncture, ``+w_puncture`` if it lies within ``access_tolerance`` of a planned entry
+  into tissue (the top entry or, over a wound, the far wound face) of the current stitch, ``-w_puncture``
+  otherwise (an unplanned hole).
+* ``thread``: ``w_thread (min(L', T) - min(L, T)) / T`` with ``L`` the thread pulled through the current
+  stitch's exit (m) and ``T = plan.thread_target``, counted after the stitch's final exit.
+* ``closure``: ``w_closure (g - g') / g0``: the reduction of the mean wound gap ``g`` (m) this step relative to
+  the gap at rest ``g0``.
+* ``success``: ``w_success`` once, on the step the task succeeds.
+* ``tissue_force``: ``-w_tissue_force cost`` with ``cost = max(0, F - safe_force) / (tear_force - safe_force)``
+  and ``F`` the largest coupling force (N) of the step; ``info["cost"] = cost`` (>= 0) for safe RL.
+* ``action``: ``-w_action mean(a^2)`` of the raw action.
+
+The reward is ``math.fsum`` of the terms, so ``math.fsum(info["reward_<t>"] for t in TERMS) == reward`` holds
+exactly (``fsum`` is correctly rounded, whatever the order of the terms).
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass, field, fields
+from typing import ClassVar
+
+import numpy as np
+
+from suture_gym.tasks.geometry import PlannedArc
+
+
+@dataclass(frozen=True)
+class Observables:
+    """A read-only snapshot of everything a task may read, taken after an env step (all arrays are copies).
+
+    Attributes:
+        time: simulated time, s.
+        tip_pos: ``(3,) float64`` needle tip, m.
+        tip_dir: ``(3,) float64`` unit direction in which the tip advances.
+        needle_normal: ``(3,) float64`` unit normal of the needle's plane (the tip advances clockwise about it).
+        needle_center: ``(3,) float64`` centre of the needle's circle, m.
+        grip_pos: ``(3,) float64`` grip point of the holder, m.
+        needle_vel: ``(3,) float64`` velocity of the needle body's centre of mass, m/s.
+        needle_omega: ``(3,) float64`` angular velocity of the needle, rad/s (world frame).
+        tip_sdist: signed distance of the tip to the tissue surface, m (negative inside; ``inf`` far away).
+        punctured: the tip is inside the tissue along an open path.
+        path_count: paths (needle tracks) currently in the tissue.
+        new_entries: ``(k, 3) float64`` entry points of the punctures since the previous snapshot, as material
+            points (positions in the tissue's rest shape), m.
+        new_exits: ``(k, 3) float64`` points where the tip came out since the previous snapshot (material points
+            in the rest shape), m.
+        tip_force: force the tip exerted on the surface before puncturing, N (0 once inside).
+        tissue_force: largest coupling-constraint force in the last substep, N.
+        haptic_wrench: ``(6,) float64`` wrench the constraints exert on the needle, ``[N, N m]`` about the grip.
+        damaged: the tissue tore (a coupling force exceeded the tear force); sticky.
+        wound_gap: mean gap between the facing wound faces over their free upper half, m (0 without a wound).
+        thread_through: thread beyond the needle that has come out of the newest exit point, m (0 before).
+        suture_samples: ``(S, 3) float64`` thread nodes sampled from the swage to the tail, m.
+        diverged: the simulation produced non-finite or absurd values.
+    """
+
+    time: float
+    tip_pos: np.ndarray
+    tip_dir: np.ndarray
+    needle_normal: np.ndarray
+    needle_center: np.ndarray
+    grip_pos: np.ndarray
+    needle_vel: np.ndarray
+    needle_omega: np.ndarray
+    tip_sdist: float
+    punctured: bool
+    path_count: int
+    new_entries: np.ndarray
+    new_exits: np.ndarray
+    tip_force: float
+    tissue_force: float
+    haptic_wrench: np.ndarray
+    damaged: bool
+    wound_gap: float
+    thread_through: float
+    suture_samples: np.ndarray
+    diverged: bool
+
+
+@dataclass
+class TaskState:
+    """Bookkeeping of a task within an episode (copied by :meth:`Task.get_state`).
+
+    Attributes:
+        stitch: index of the current planned arc.
+        punctured_stitch: the current stitch has had its first puncture.
+        exits_in_stitch: times the tip came out during the current stitch.
+        exited: the current stitch's final exit happened.
+        entry_point: ``(3,)`` first puncture of the current stitch, m (nan before).
+        exit_point: ``(3,)`` final exit of the current stitch, m (nan before).
+        potential: ``Phi`` of the progress term at the last step.
+        thread: thread pulled through the current stitch at the last step (capped at the target), m.
+        gap: mean wound gap at the last step, m (0 without a wound).
+        succeeded: success has been reported.
+    """
+
+    stitch: int = 0
+    punctured_stitch: bool = False
+    exits_in_stitch: int = 0
+    exited: bool = False
+    entry_point: np.ndarray = field(default_factory=lambda: np.full(3, np.nan))
+    exit_point: np.ndarray = field(default_factory=lambda: np.full(3, np.nan))
+    potential: float = 0.0
+    thread: float = 0.0
+    gap: float = 0.0
+    succeeded: bool = False
+
+    def copy(self) -> TaskState:
+        """Deep copy."""
+        return TaskState(**{f.name: (v.copy() if isinstance(v := getattr(self, f.name), np.ndarray) else v)
+                            for f in fields(self)})
+
+
+@dataclass(frozen=True)
+class TaskOutcome:
+    """What a task returns for one env step.
+
+    Attributes:
+        terms: reward term name -> value, in the task's ``TERMS`` order.
+        reward: ``math.fsum`` of the terms.
+        cost: tissue-force cost (>= 0), ``info["cost"]``.
+        success: the task succeeded this step (or earlier).
+        tear: the tissue tore.
+        out_of_workspace: the tip left the workspace box.
+    """
+
+    terms: dict
+    reward: float
+    cost: float
+    success: bool
+    tear: bool
+    out_of_workspace: bool
+
+
+class Task:
+    """Base of the suturing tasks. Subclasses set the class attributes and the goal methods.
+
+    Args:
+        arcs: the planned stitches, in the order they are to be made.
+        reward: the :class:`~suture_gym.envs.config.RewardConfig`.
+        tear_force: coupling force (N) at which the tissue tears (scales the tissue-force cost).
+        thread_target: thread (m) to pull through each stitch.
+        closure_target: fraction of the rest gap to reach (tasks with a wound).
+        workspace: ``(2, 3)`` lower and upper corners of the box the tip must stay in, m.
+        gap_rest: mean wound gap at rest, m (0 without a wound; only tasks with a wound use it).
+    """
+
+    #: Registered name (``EnvConfig.task``).
+    NAME: ClassVar[str] = ""
+    #: Reward terms, in the order reported.
+    TERMS: ClassVar[tuple[str, ...]] = ()
+    #: Start phases accepted by ``reset(options={"phase": ...})``, the first being the default.
+    PHASES: ClassVar[tuple[str, ...]] = ("approach",)
+    #: Size of ``achieved_goal`` / ``desired_goal`` in the goal-conditioned variant.
+    GOAL_SIZE: ClassVar[int] = 0
+    #: Goal entries and their units, for the docs: (name, unit) per component.
+    GOAL_LAYOUT: ClassVar[tuple[tuple[str, str], ...]] = ()
+    #: Terms of the goal-conditioned variant: the goal term computed from the goals, then the terms read back
+    #: from ``info``.
+    GOAL_TERMS: ClassVar[tuple[str, ...]] = ("goal", "tissue_force", "action")
+
+    def __init__(self, arcs, reward, tear_force: float, thread_target: float, closure_target: float,
+                 workspace: np.ndarray, gap_rest: float) -> None:
+        if not arcs or not all(isinstance(a, PlannedArc) for a in arcs):
+            raise ValueError("arcs must be a non-empty sequence of PlannedArc")
+        if not (math.isfinite(tear_force) and tear_force > reward.safe_force):
+            raise ValueError(f"tear_force ({tear_force} N) must exceed reward.safe_force ({reward.safe_force} N)")
+        box = np.array(workspace, dtype=np.float64)
+        if box.shape != (2, 3) or not np.all(box[0] < box[1]):
+            raise ValueError(f"workspace must be (2, 3) [lower, upper] corners in m, got {workspace!r}")
+        self.arcs = tuple(arcs)
+        self.reward = reward
+        self.tear_force = float(tear_force)
+        self.thread_target = float(thread_target)
+        self.closure_target = float(closure_target)
+        self.workspace = box
+        self.gap_rest = float(gap_rest)
+        self.state = TaskState()
+
+    # ------------------------------------------------------------------------------------------------------
+    # Episode
+    # ------------------------------------------------------------------------------------------------------
+
+    @property
+    def arc(self) -> PlannedArc:
+        """The current planned stitch."""
+        return self.arcs[min(self.state.stitch, len(self.arcs) - 1)]
+
+    def reset(self, obs: Observables) -> None:
+        """Start an episode from ``obs``: forget the previous one, then take in the events of ``obs`` (a start
+        phase past the approach arrives with its punctures and exits done) without rewarding them."""
+        self.state = TaskState(gap=obs.wound_gap)
+        self._consume_events(obs)
+        self.state.thread = self._thread(obs)
+        self._advance_stitch()
+        self.state.potential = self._potential(obs)
+
+    def get_state(self) -> TaskState:
+        """A copy of the bookkeeping (for env snapshots)."""
+        return self.state.copy()
+
+    def set_state(self, state: TaskState) -> None:
+        """Restore bookkeeping from :meth:`get_state`."""
+        if not isinstance(state, TaskState):
+            raise ValueError(f"state must be a TaskState, got {type(state).__name__}")
+        self.state = state.copy()
+
+    def step(self, obs: Observables, action: np.ndarray) -> TaskOutcome:
+        """Reward terms and flags for the step that led to ``obs`` under ``action`` (6,)."""
+        w = self.reward
+        st = self.state
+        values = dict.fromkeys(self.TERMS, 0.0)
+        if "path" in values and not st.exited:
+            d = self.arc.distance(obs.tip_pos)
+            values["path"] = -w.path * d / (d + w.path_scale)
+        event_terms = self._consume_events(obs)
+        for name, value in event_terms.items():
+            if name in values:
+                values[name] = value
+        potential = self._potential(obs)
+        if "progress" in values:
+            values["progress"] = w.progress * (potential - st.potential)
+        st.potential = potential
+        thread = self._thread(obs)
+        if "thread" in values:
+            values["thread"] = w.thread * (thread - st.thread) / self.thread_target
+        st.thread = thread
+        if "closure" in values:
+            values["closure"] = w.closure * (st.gap - obs.wound_gap) / self.gap_rest
+        st.gap = obs.wound_gap
+        self._advance_stitch()
+        success = self.success(obs)
+        if success and not st.succeeded:
+            st.succeeded = True
+            if "success" in values:
+                values["success"] = w.success
+        cost = max(0.0, obs.tissue_force - w.safe_force) / (self.tear_force - w.safe_force)
+        if "tissue_force" in values:
+            values["tissue_force"] = -w.tissue_force * cost
+        if "action" in values:
+            values["action"] = -w.action * float(np.mean(np.square(action)))
+        outside = bool(np.any(obs.tip_pos < self.workspace[0]) or np.any(obs.tip_pos > self.workspace[1]))
+        return TaskOutcome(
+            terms=values,
+            reward=math.fsum(values.values()),
+            cost=cost,
+            success=success,
+            tear=obs.damaged,
+            out_of_workspace=outside,
+        )
+
+    # ------------------------------------------------------------------------------------------------------
+    # Events and potentials
+    # ------------------------------------------------------------------------------------------------------
+
+    def _consume_events(self, obs: Observables) -> dict:
+        """Update the stitch bookkeeping with the punctures and exits in ``obs``; returns the event terms."""
+        w = self.reward
+        st = self.state
+        tol = w.access_tolerance
+        terms = {"entry": 0.0, "exit": 0.0, "puncture": 0.0}
+        for point in obs.new_entries:
+            arc = self.arc
+            planned_entries = arc.access_points[0::2]
+            near = float(np.min(np.linalg.norm(planned_entries - point, axis=1))) <= tol
+            terms["puncture"] += w.puncture if near and not st.exited else -w.puncture
+            if not st.punctured_stitch and not st.exited:
+                st.punctured_stitch = True
+                st.entry_point = np.array(point, dtype=np.float64)
+                e = float(np.linalg.norm(point - arc.entry))
+                terms["entry"] += w.entry * max(0.0, 1.0 - e / tol)
+        for point in obs.new_exits:
+            if not st.punctured_stitch or st.exited:
+                continue
+            st.exits_in_stitch += 1
+            if st.exits_in_stitch == len(self.arc.access_angles) // 2:
+                st.exited = True
+                st.exit_point = np.array(point, dtype=np.float64)
+                e = float(np.linalg.norm(point - self.arc.exit))
+                terms["exit"] += w.exit * max(0.0, 1.0 - e / tol)
+        return terms
+
+    def _potential(self, obs: Observables) -> float:
+        """``Phi = stitch + clip(progress, 0, 1)`` once the stitch is punctured (``stitch`` before, ``stitch + 1``
+        after its final exit)."""
+        st = self.state
+        if st.exited:
+            return st.stitch + 1.0
+        if not st.punctured_stitch:
+            return float(st.stitch)
+        return st.stitch + min(max(self.arc.progress(obs.tip_pos), 0.0), 1.0)
+
+    def _thread(self, obs: Observables) -> float:
+        """Thread pulled through the current stitch, capped at the target (0 before its final exit), m."""
+        if not self.state.exited:
+            return 0.0
+        return min(max(obs.thread_through, 0.0), self.thread_target)
+
+    def _advance_stitch(self) -> None:
+        """Move to the next stitch once the current one is exited and its thread pulled through."""
+        st = self.state
+        if st.stitch + 1 >= len(self.arcs) or not st.exited or st.thread < self.thread_target:
+            return
+        st.stitch += 1
+        st.punctured_stitch = False
+        st.exits_in_stitch = 0
+        st.exited = False
+        st.entry_point = np.full(3, np.nan)
+        st.exit_point = np.full(3, np.nan)
+        st.potential = float(st.stitch)
+        st.thread = 0.0
+
+    # ------------------------------------------------------------------------------------------------------
+    # Success and goals (per task)
+    # ------------------------------------------------------------------------------------------------------
+
+    def success(self, obs: Observables) -> bool:
+        """Whether the task is achieved: the goal test on the achieved and desired goals."""
+        achieved = self.achieved_goal(obs)
+        return bool(self.goal_reached(achieved[None, :], self.desired_goal()[None, :])[0])
+
+    def achieved_goal(self, obs: Observables) -> np.ndarray:
+        """``(GOAL_SIZE,) float64`` goal achieved so far."""
+        raise NotImplementedError
+
+    def desired_goal(self) -> np.ndarray:
+        """``(GOAL_SIZE,) float64`` goal of the episode."""
+        raise NotImplementedError
+
+    def goal_reached(self, achieved: np.ndarray, desired: np.ndarray) -> np.ndarray:
+        """``(B,) bool`` whether each row of ``achieved`` (B, G) meets the same row of ``desired`` (B, G)."""
+        raise NotImplementedError
+
+    def goal_distance(self, achieved: np.ndarray, desired: np.ndarray) -> np.ndarray:
+        """``(B,) float64`` in ``[0, 1)``: how far each achieved goal is from its desired goal (0 = met)."""
+        raise NotImplementedError
+
+    def goal_term(self, achieved: np.ndarray, desired: np.ndarray) -> np.ndarray:
+        """``(B,)`` goal term: sparse ``-1`` until reached, else 0; or dense ``-goal_distance``."""
+        if self.reward.goal == "sparse":
+            return np.where(self.goal_reached(achieved, desired), 0.0, -1.0)
+        return -self.goal_distance(achieved, desired)
+
+    def _position_goal(self, obs: Observables) -> np.ndarray:
+        """``(8,)`` achieved ``[entry (3), exit (3), punctured, exited]``: the recorded points (the tip position
+        before each happens) and whether the stitch's first puncture and final exit happened (0 or 1)."""
+        st = self.state
+        entry = st.entry_point if st.punctured_stitch else obs.tip_pos
+        exit_ = st.exit_point if st.exited else obs.tip_pos
+        return np.concatenate([entry, exit_, [float(st.punctured_stitch), float(st.exited)]])
+
+    def _position_desired(self) -> np.ndarray:
+        """``(8,)`` desired ``[planned entry (3), planned exit (3), 1, 1]``."""
+        return np.concatenate([self.arc.entry, self.arc.exit, [1.0, 1.0]])
+
+    def _positions_reached(self, achieved: np.ndarray, desired: np.ndarray) -> np.ndarray:
+        tol = self.reward.access_tolerance
+        entry = np.linalg.norm(achieved[:, 0:3] - desired[:, 0:3], axis=1)
+        exit_ = np.linalg.norm(achieved[:, 3:6] - desired[:, 3:6], axis=1)
+        events = np.all(achieved[:, 6:8] >= desired[:, 6:8], axis=1)
+        return (entry <= tol) & (exit_ <= tol) & events
+
+    def _positions_distance(self, achieved: np.ndarray, desired: np.ndarray) -> np.ndarray:
+        tol = self.reward.access_tolerance
+        entry = np.linalg.norm(achieved[:, 0:3] - desired[:, 0:3], axis=1)
+        exit_ = np.linalg.norm(achieved[:, 3:6] - desired[:, 3:6], axis=1)
+        missing = np.maximum(desired[:, 6:8] - achieved[:, 6:8], 0.0).sum(axis=1)
+        return (entry / (entry + tol) + exit_ / (exit_ + tol) + missing) / 4.0

@@ -1,0 +1,279 @@
+"""The Gymnasium environments on the real coupled simulator: check_env (Gymnasium and SB3) for every id, random
+rollouts including the corners of the action box, determinism, exact reward sums, snapshots, action errors,
+divergence, start phases, privileged observations, pose-delta mode, goal rewards, rendering and configs."""
+
+import itertools
+import math
+import warnings
+from pathlib import Path
+
+import gymnasium as gym
+import numpy as np
+import pytest
+
+import suture_gym.envs  # noqa: F401  (registers the ids)
+from suture_gym.envs import ENV_IDS, GOAL_ENV_IDS, SutureEnv, SutureGoalEnv
+
+ALL_IDS = list(ENV_IDS) + list(GOAL_ENV_IDS)
+CONFIGS = Path(__file__).resolve().parents[1] / "configs" / "envs"
+INFO_KEYS = ("is_success", "punctured", "tip_force", "wound_gap", "diverged", "cost")
+_ENVS: dict = {}
+
+
+def _env(env_id: str) -> gym.Env:
+    """One shared unwrapped env per id (building a scene takes a while; every test resets it)."""
+    if env_id not in _ENVS:
+        _ENVS[env_id] = gym.make(env_id).unwrapped
+    return _ENVS[env_id]
+
+
+def _terms(env) -> tuple:
+    return env.task_cls.GOAL_TERMS if isinstance(env, SutureGoalEnv) else env.task_cls.TERMS
+
+
+def _check_step(env, obs, reward, info):
+    assert env.observation_space.contains(obs)
+    flat = [obs] if isinstance(obs, np.ndarray) else list(obs.values())
+    assert all(np.all(np.isfinite(v)) for v in flat)
+    assert math.isfinite(reward)
+    for key in INFO_KEYS:
+        assert key in info
+    assert info["cost"] >= 0.0
+    terms = [info[f"reward_{t}"] for t in _terms(env)]
+    assert math.fsum(terms) == reward
+
+
+@pytest.mark.parametrize("env_id", ALL_IDS)
+def test_gymnasium_check_env(env_id):
+    from gymnasium.utils.env_checker import check_env
+
+    with warnings.catch_warnings():
+        warnings.filterwarnings("ignore", message=".*Box observation space (minimum|maximum) value is.*")
+        check_env(_env(env_id), skip_render_check=True)
+
+
+@pytest.mark.parametrize("env_id", ALL_IDS)
+def test_sb3_check_env(env_id):
+    env_checker = pytest.importorskip("stable_baselines3.common.env_checker")
+    env_checker.check_env(_env(env_id), warn=False)
+
+
+@pytest.mark.parametrize("env_id", ALL_IDS)
+def test_random_rollouts_with_box_corners_stay_finite(env_id):
+    env = _env(env_id)
+    rng = np.random.default_rng(0)
+    corners = [np.array(c, dtype=np.float32) for c in itertools.product((-1.0, 1.0), repeat=6)]
+    actions = [c for c in corners for _ in range(2)] + [rng.uniform(-1, 1, 6).astype(np.float32) for _ in range(60)]
+    obs, info = env.reset(seed=1)
+    episodes = 1
+    for a in actions:
+        obs, reward, terminated, truncated, info = env.step(a)
+        _check_step(env, obs, reward, info)
+        if terminated or truncated:
+            obs, info = env.reset()
+            episodes += 1
+    assert episodes >= 1
+
+
+@pytest.mark.parametrize("env_id", list(ENV_IDS))
+def test_same_seed_same_actions_bit_identical(env_id):
+    rng = np.random.default_rng(4)
+    actions = rng.uniform(-0.3, 0.3, (40, 6)).astype(np.float32)
+    runs = []
+    for _ in range(2):
+        env = _env(env_id)
+        obs, _ = env.reset(seed=7)
+        record = [obs.tobytes()]
+        for a in actions:
+            obs, reward, terminated, truncated, info = env.step(a)
+            record.append((obs.tobytes(), reward, terminated, truncated, sorted(info.items())))
+            if terminated or truncated:
+                break
+        runs.append(record)
+    assert runs[0] == runs[1]
+
+
+def test_observations_do_not_alias_internal_arrays():
+    env = _env("SutureGym/NeedleInsert-v0")
+    obs, _ = env.reset(seed=0)
+    kept = obs.copy()
+    obs[:] = 123.0
+    obs2, *_ = env.step(np.zeros(6, np.float32))
+    assert not np.shares_memory(obs2, env._obs_buffer)
+    state = env.get_state()
+    assert np.array_equal(state.last_observation, obs2) and not np.shares_memory(state.last_observation, obs2)
+    env.reset(seed=0)
+    assert np.array_equal(env.last_observation, kept)
+
+
+@pytest.mark.parametrize("env_id", list(ENV_IDS))
+def test_snapshot_restore_replays_identically(env_id):
+    env = _env(env_id)
+    env.reset(seed=3)
+    rng = np.random.default_rng(9)
+    for _ in range(10):
+        env.step(rng.uniform(-0.2, 0.2, 6).astype(np.float32))
+    saved = env.get_state()
+    actions = rng.uniform(-0.2, 0.2, (15, 6)).astype(np.float32)
+
+    def play():
+        out = []
+        for a in actions:
+            obs, reward, terminated, truncated, info = env.step(a)
+            out.append((obs.tobytes(), reward, terminated, truncated, sorted(info.items())))
+        return out
+
+    first = play()
+    env.set_state(saved)
+    assert play() == first
+    with pytest.raises(ValueError, match="EnvState"):
+        env.set_state("not a state")
+
+
+def test_bad_actions_raise_and_finite_out_of_box_actions_pass_unchanged():
+    env = _env("SutureGym/NeedleInsert-v0")
+    env.reset(seed=0)
+    with pytest.raises(ValueError, match=r"finite.*\[2\]"):
+        env.step(np.array([0.0, 0.0, np.nan, 0.0, 0.0, 0.0]))
+    with pytest.raises(ValueError, match="finite"):
+        env.step(np.array([np.inf, 0.0, 0.0, 0.0, 0.0, -np.inf]))
+    with pytest.raises(ValueError, match="shape"):
+        env.step(np.zeros(5))
+    a = np.full(6, 2.0)
+    _, reward, *_, info = env.step(a)
+    assert info["reward_action"] == pytest.approx(-env.config.reward.action * 4.0)
+
+
+def test_divergence_truncates_with_the_last_finite_observation():
+    env = _env("SutureGym/NeedleInsert-v0")
+    obs0, _ = env.reset(seed=0)
+    obs, reward, terminated, truncated, info = env.step(np.full(6, 1e9, dtype=np.float64))
+    assert truncated and not terminated and info["diverged"]
+    assert reward == 0.0 and np.array_equal(obs, obs0)
+    assert all(info[f"reward_{t}"] == 0.0 for t in env.task_cls.TERMS)
+    obs, reward, terminated, truncated, info = env.step(np.zeros(6))
+    assert truncated and info["diverged"] and np.all(np.isfinite(obs))
+
+
+def test_reset_options_are_checked():
+    env = _env("SutureGym/NeedleInsert-v0")
+    with pytest.raises(ValueError, match="unknown reset option"):
+        env.reset(seed=0, options={"difficulty": 2})
+    with pytest.raises(ValueError, match="phase"):
+        env.reset(seed=0, options={"phase": "first_bite"})
+    with pytest.raises(ValueError, match="unknown episode parameter"):
+        env.reset(seed=0, options={"params": {"stiffness": 1.0}})
+    _, info = env.reset(seed=0, options={"params": {"youngs_modulus": 2500.0}})
+    assert info["params"]["youngs_modulus"] == 2500.0
+
+
+#: A smaller wound-closure scene (two stitches, shorter bars and thread) for the first-bite phase test.
+SMALL_CLOSURE = {"scene": {"size": [0.016, 0.012, 0.008]}, "plan": {"stitches": 2},
+                 "suture": {"node_count": 41, "length": 0.04}}
+
+
+@pytest.mark.parametrize(
+    "task, config, phase, check",
+    [
+        ("needle_insert", None, "inserted", lambda env, info: info["punctured"]),
+        ("suture_throw", None, "exited", lambda env, info: env.task.state.exited),
+        ("wound_closure", SMALL_CLOSURE, "first_bite", lambda env, info: env.task.state.stitch == 1),
+    ],
+)
+def test_start_phases(task, config, phase, check):
+    env = SutureEnv(task, config=config)
+    obs, info = env.reset(seed=0, options={"phase": phase})
+    assert info["phase"] == phase and check(env, info)
+    obs2, info2 = env.reset(seed=0, options={"phase": phase})  # cached: identical
+    assert np.array_equal(obs, obs2)
+    _, reward, *_ = env.step(np.zeros(6, np.float32))
+    assert math.isfinite(reward)
+
+
+def test_scripted_surgeon_completes_needle_insert():
+    env = _env("SutureGym/NeedleInsert-v0")
+    env.reset(seed=0)
+    arc = env.sim.arcs[0]
+    angle = arc.entry_angle - env.config.plan.start_angle
+    total, info = 0.0, {}
+    for _ in range(400):
+        angle = min(angle + 2.0 * env.sim.control_dt, arc.exit_angle + 0.5)
+        obs, reward, terminated, truncated, info = env.step(env.scripted_action(angle))
+        total += reward
+        if terminated or truncated:
+            break
+    assert info["is_success"] and terminated and not info["tear"]
+    assert total > env.config.reward.success
+
+
+def test_privileged_observation_holds_the_sampled_parameters():
+    cfg = {"observation": {"privileged": True}, "randomization": {"youngs_modulus_scale": [0.8, 1.2],
+                                                                   "needle_position_noise": 5e-4}}
+    env = SutureEnv("needle_insert", config=cfg)
+    obs, info = env.reset(seed=2)
+    params = obs[env.obs_index["params"]]
+    p = info["params"]
+    expected = [p["youngs_modulus"], p["puncture_force"], p["gap"], *p["needle_position_offset"],
+                *p["needle_rotation_offset"]]
+    np.testing.assert_array_equal(params, np.array(expected, dtype=np.float32))
+    _, info2 = env.reset(seed=3)
+    assert info2["params"] != info["params"]
+
+
+def test_pose_delta_mode_holds_still_and_follows_the_script():
+    env = SutureEnv("needle_insert", action_mode="pose_delta")
+    obs, _ = env.reset(seed=0)
+    assert "target_offset" in env.obs_index and env.config.action.mode == "pose_delta"
+    for _ in range(10):
+        obs, *_ = env.step(np.zeros(6, np.float32))
+    assert np.linalg.norm(obs[env.obs_index["target_offset"]]) < 1e-4
+    arc = env.sim.arcs[0]
+    angle = arc.entry_angle - env.config.plan.start_angle
+    for _ in range(60):
+        angle += 1.0 * env.sim.control_dt
+        obs, reward, terminated, truncated, info = env.step(env.scripted_action(angle))
+    assert arc.distance(env.sim.observables().tip_pos) < 1e-3
+
+
+@pytest.mark.parametrize("env_id", list(GOAL_ENV_IDS))
+def test_goal_env_reward_is_compute_reward(env_id):
+    env = _env(env_id)
+    obs, _ = env.reset(seed=0)
+    rng = np.random.default_rng(1)
+    batch_ag, batch_dg, infos, rewards = [], [], [], []
+    for _ in range(5):
+        obs, reward, terminated, truncated, info = env.step(rng.uniform(-0.2, 0.2, 6).astype(np.float32))
+        assert reward == env.compute_reward(obs["achieved_goal"], obs["desired_goal"], info)
+        batch_ag.append(obs["achieved_goal"])
+        batch_dg.append(obs["desired_goal"])
+        infos.append(info)
+        rewards.append(reward)
+    batched = env.compute_reward(np.array(batch_ag), np.array(batch_dg), np.array(infos))
+    np.testing.assert_array_equal(batched, rewards)
+    relabelled = env.compute_reward(np.array(batch_ag), np.array(batch_ag), infos)
+    own = [math.fsum([i["reward_tissue_force"], i["reward_action"]]) for i in infos]
+    np.testing.assert_array_equal(relabelled, own)  # an achieved goal is always reached
+
+
+def test_render_rgb_array_and_record_video(tmp_path):
+    pytest.importorskip("moviepy")
+    from gymnasium.wrappers import RecordVideo
+
+    env = gym.make("SutureGym/NeedleInsert-v0", render_mode="rgb_array")
+    env = RecordVideo(env, str(tmp_path / "videos"), episode_trigger=lambda k: True, disable_logger=True)
+    env.reset(seed=0)
+    frame = env.unwrapped.render()
+    r = env.unwrapped.config.render
+    assert frame.shape == (r.height, r.width, 3) and frame.dtype == np.uint8 and frame.std() > 5
+    for _ in range(5):
+        env.step(env.action_space.sample())
+    env.close()
+    videos = list((tmp_path / "videos").glob("*.mp4"))
+    assert videos and videos[0].stat().st_size > 0
+
+
+def test_yaml_config_reaches_the_env():
+    env = gym.make("SutureGym/NeedleInsert-v0", config=CONFIGS / "needle_insert_randomized.yaml").unwrapped
+    assert env.config.observation.privileged and env.config.randomization.youngs_modulus_scale != (1.0, 1.0)
+    with pytest.raises(ValueError, match="'reward.bonus'"):
+        gym.make("SutureGym/NeedleInsert-v0", config={"reward": {"bonus": 1.0}})
