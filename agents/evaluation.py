@@ -40,13 +40,13 @@ def make_policy(policy: str, env: gym.Env, seed: int) -> Callable[[object], np.n
         from agents.expert import ExpertPolicy
 
         return ExpertPolicy(env)
-    return _saved_model_policy(Path(policy))
+    return _saved_model_policy(Path(policy), env)
 
 
-def _saved_model_policy(path: Path) -> Callable[[object], np.ndarray]:
+def _saved_model_policy(path: Path, env: gym.Env) -> Callable[[object], np.ndarray]:
     import yaml
 
-    from agents.training import ALGOS, algo_class
+    from agents.training import ALGOS, _sibling, algo_class
 
     if not path.exists():
         raise FileNotFoundError(f"policy {str(path)!r} is neither 'random', 'expert' nor an existing model file")
@@ -58,14 +58,14 @@ def _saved_model_policy(path: Path) -> Callable[[object], np.ndarray]:
     model = None
     for name in candidates:
         try:
-            model = algo_class(name).load(path, device="cpu")
+            model = algo_class(name).load(path, env=env, device="cpu")  # HER needs the env to load
             break
-        except (ValueError, KeyError, RuntimeError, TypeError):
+        except (ValueError, KeyError, RuntimeError, TypeError, AssertionError):
             continue
     if model is None:
         raise ValueError(f"{str(path)!r} is not a model of any of {candidates}")
     normalizer = None
-    stats = path.parent / "final_vecnormalize.pkl"
+    stats = _sibling(path, "vecnormalize", ".pkl") or path.parent / "final_vecnormalize.pkl"
     if stats.exists():
         import pickle
 

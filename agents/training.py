@@ -125,7 +125,7 @@ def train(
     if normalize:
         norm_kwargs = normalize if isinstance(normalize, dict) else {}
         env = VecNormalize(env, **norm_kwargs)
-        eval_env = VecNormalize(eval_env, training=False, norm_reward=False, **norm_kwargs)
+        eval_env = VecNormalize(eval_env, **{**norm_kwargs, "training": False, "norm_reward": False})
 
     cls = algo_class(algo)
     if resume is not None:

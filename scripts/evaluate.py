@@ -28,13 +28,16 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--policy", default="random", help="'random', 'expert' or a path to a model .zip")
     parser.add_argument("--episodes", type=int, default=20)
     parser.add_argument("--seed", type=int, default=0, help="episode k uses env seed seed + k")
+    parser.add_argument("--config", default=None, help="env config overrides (a configs/envs/*.yaml path)")
     parser.add_argument("--json", action="store_true", help="print JSON")
     parser.add_argument("--per-episode", action="store_true", help="include per-episode records")
     args = parser.parse_args(argv)
     if args.episodes <= 0:
         parser.error(f"--episodes must be positive, got {args.episodes}")
 
-    summary = evaluate(args.env, args.policy, args.episodes, seed=args.seed, progress=not args.json)
+    env_kwargs = {"config": args.config} if args.config is not None else None
+    summary = evaluate(args.env, args.policy, args.episodes, seed=args.seed, env_kwargs=env_kwargs,
+                       progress=not args.json)
     if not args.per_episode:
         summary.pop("per_episode")
     if args.json:
