@@ -193,6 +193,23 @@ def test_action_cost_and_exact_sum_for_random_steps():
         _assert_exact_sum(task, out)
 
 
+def test_leaving_the_workspace_hands_back_the_banked_progress():
+    """The exploit a PPO run found: puncture, push the tip until the arc progress saturates, leave the workspace.
+    With the failing end's potential at 0 the progress terms of the episode sum to -w * Phi(start) <= 0."""
+    w = RewardConfig()
+    task = _task(NeedleInsert)
+    arc = task.arc
+    task.reset(_obs(arc.entry))
+    progress = [task.step(_obs(arc.entry, entries=[arc.entry], punctured=True), np.zeros(6))]
+    progress += _walk(task, arc, np.linspace(arc.entry_angle, arc.exit_angle + 0.5, 10))
+    banked = math.fsum(o.terms["progress"] for o in progress)
+    assert banked == pytest.approx(w.progress, rel=1e-9)  # the whole arc's potential, as the exploit banked it
+    away = task.step(_obs(task.workspace[1] + 0.01, punctured=True), np.zeros(6))
+    assert away.out_of_workspace and not away.success
+    _assert_exact_sum(task, away)
+    assert banked + away.terms["progress"] == pytest.approx(0.0, abs=1e-12)
+
+
 def test_leaving_the_workspace_is_flagged():
     task = _task(NeedleInsert)
     task.reset(_obs(task.arc.point(-2.7)))

@@ -269,6 +269,7 @@ class SutureEnv(gym.Env):
             closure_target=cfg.plan.closure_target,
             workspace=self.sim.workspace,
             gap_rest=self.sim.gap_rest,
+            end_on_tear=cfg.termination.end_on_tear,
         )
 
     @staticmethod

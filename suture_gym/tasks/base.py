@@ -179,7 +179,7 @@ class Task:
     GOAL_TERMS: ClassVar[tuple[str, ...]] = ("goal", "tissue_force", "action")
 
     def __init__(self, arcs, reward, tear_force: float, thread_target: float, closure_target: float,
-                 workspace: np.ndarray, gap_rest: float) -> None:
+                 workspace: np.ndarray, gap_rest: float, end_on_tear: bool = True) -> None:
         if not arcs or not all(isinstance(a, PlannedArc) for a in arcs):
             raise ValueError("arcs must be a non-empty sequence of PlannedArc")
         if not (math.isfinite(tear_force) and tear_force > reward.safe_force):
@@ -194,6 +194,7 @@ class Task:
         self.closure_target = float(closure_target)
         self.workspace = box
         self.gap_rest = float(gap_rest)
+        self.end_on_tear = bool(end_on_tear)
         self.state = TaskState()
 
     # ------------------------------------------------------------------------------------------------------
@@ -237,8 +238,9 @@ class Task:
             if name in values:
                 values[name] = value
         potential = self._potential(obs)
+        previous_potential = st.potential
         if "progress" in values:
-            values["progress"] = w.progress * (potential - st.potential)
+            values["progress"] = w.progress * (potential - previous_potential)
         st.potential = potential
         thread = self._thread(obs)
         if "thread" in values:
@@ -259,6 +261,12 @@ class Task:
         if "action" in values:
             values["action"] = -w.action * float(np.mean(np.square(action)))
         outside = bool(np.any(obs.tip_pos < self.workspace[0]) or np.any(obs.tip_pos > self.workspace[1]))
+        if not success and (outside or (obs.damaged and self.end_on_tear)):
+            # A failing end is absorbing and its shaping potential is 0 (Ng et al. 1999): the progress banked on
+            # the way is handed back, so ending an episode early can never pay.
+            if "progress" in values:
+                values["progress"] = -w.progress * previous_potential
+            st.potential = 0.0
         return TaskOutcome(
             terms=values,
             reward=math.fsum(values.values()),
