@@ -35,6 +35,7 @@ exactly (``fsum`` is correctly rounded, whatever the order of the terms).
 from __future__ import annotations
 
 import math
+from abc import ABC, abstractmethod
 from dataclasses import dataclass, field, fields
 from typing import ClassVar
 
@@ -151,7 +152,7 @@ class TaskOutcome:
     out_of_workspace: bool
 
 
-class Task:
+class Task(ABC):
     """Base of the suturing tasks. Subclasses set the class attributes and the goal methods.
 
     Args:
@@ -346,21 +347,21 @@ class Task:
         achieved = self.achieved_goal(obs)
         return bool(self.goal_reached(achieved[None, :], self.desired_goal()[None, :])[0])
 
+    @abstractmethod
     def achieved_goal(self, obs: Observables) -> np.ndarray:
         """``(GOAL_SIZE,) float64`` goal achieved so far."""
-        raise NotImplementedError
 
+    @abstractmethod
     def desired_goal(self) -> np.ndarray:
         """``(GOAL_SIZE,) float64`` goal of the episode."""
-        raise NotImplementedError
 
+    @abstractmethod
     def goal_reached(self, achieved: np.ndarray, desired: np.ndarray) -> np.ndarray:
         """``(B,) bool`` whether each row of ``achieved`` (B, G) meets the same row of ``desired`` (B, G)."""
-        raise NotImplementedError
 
+    @abstractmethod
     def goal_distance(self, achieved: np.ndarray, desired: np.ndarray) -> np.ndarray:
         """``(B,) float64`` in ``[0, 1)``: how far each achieved goal is from its desired goal (0 = met)."""
-        raise NotImplementedError
 
     def goal_term(self, achieved: np.ndarray, desired: np.ndarray) -> np.ndarray:
         """``(B,)`` goal term: sparse ``-1`` until reached, else 0; or dense ``-goal_distance``."""
