@@ -7,6 +7,7 @@ from pathlib import Path
 
 import numpy as np
 import pytest
+import yaml
 
 from suture_gym.envs.config import (
     TASKS,
@@ -93,14 +94,14 @@ def test_bad_arc_fields_are_named():
 # --- tasks on hand-made observables -------------------------------------------------------------------------
 
 
-def _obs(tip, *, entries=(), exits=(), force=0.0, gap=0.0, thread=0.0, punctured=False):
+def _obs(tip, *, entries=(), exits=(), force=0.0, gap=0.0, thread=0.0, punctured=False, damaged=False):
     z3 = np.zeros(3)
     return Observables(
         time=0.0, tip_pos=np.asarray(tip, dtype=float), tip_dir=z3, needle_normal=z3, needle_center=z3, grip_pos=z3,
         needle_vel=z3, needle_omega=z3, tip_sdist=1.0, punctured=punctured, path_count=0,
         new_entries=np.array(entries, dtype=float).reshape(-1, 3),
         new_exits=np.array(exits, dtype=float).reshape(-1, 3),
-        tip_force=0.0, tissue_force=force, haptic_wrench=np.zeros(6), damaged=False, wound_gap=gap,
+        tip_force=0.0, tissue_force=force, haptic_wrench=np.zeros(6), damaged=damaged, wound_gap=gap,
         thread_through=thread, suture_samples=np.zeros((0, 3)), diverged=False,
     )
 
@@ -118,9 +119,9 @@ def _assert_exact_sum(task, outcome):
     assert math.fsum(outcome.terms.values()) == outcome.reward
 
 
-def _walk(task, arc, angles):
-    """Tip along the planned circle at ``angles``; returns the outcomes."""
-    return [task.step(_obs(arc.point(a)), np.zeros(6)) for a in angles]
+def _walk(task, arc, angles, punctured=False):
+    """Tip along the planned circle at ``angles`` (inside the tissue if ``punctured``); returns the outcomes."""
+    return [task.step(_obs(arc.point(a), punctured=punctured), np.zeros(6)) for a in angles]
 
 
 def test_needle_insert_perfect_bite_rewards_and_succeeds():
@@ -132,7 +133,7 @@ def test_needle_insert_perfect_bite_rewards_and_succeeds():
     outcomes = _walk(task, arc, np.linspace(start, arc.entry_angle, 5))
     outcomes.append(task.step(_obs(arc.entry, entries=[arc.entry], punctured=True), np.zeros(6)))
     assert outcomes[-1].terms["entry"] == pytest.approx(w.entry) and outcomes[-1].terms["puncture"] == w.puncture
-    outcomes += _walk(task, arc, np.linspace(arc.entry_angle, arc.exit_angle, 20)[1:])
+    outcomes += _walk(task, arc, np.linspace(arc.entry_angle, arc.exit_angle, 20)[1:], punctured=True)
     final = task.step(_obs(arc.exit, exits=[arc.exit]), np.zeros(6))
     outcomes.append(final)
     for o in outcomes:
@@ -201,13 +202,84 @@ def test_leaving_the_workspace_hands_back_the_banked_progress():
     arc = task.arc
     task.reset(_obs(arc.entry))
     progress = [task.step(_obs(arc.entry, entries=[arc.entry], punctured=True), np.zeros(6))]
-    progress += _walk(task, arc, np.linspace(arc.entry_angle, arc.exit_angle + 0.5, 10))
+    progress += _walk(task, arc, np.linspace(arc.entry_angle, arc.exit_angle + 0.5, 10), punctured=True)
     banked = math.fsum(o.terms["progress"] for o in progress)
     assert banked == pytest.approx(w.progress, rel=1e-9)  # the whole arc's potential, as the exploit banked it
     away = task.step(_obs(task.workspace[1] + 0.01, punctured=True), np.zeros(6))
     assert away.out_of_workspace and not away.success
     _assert_exact_sum(task, away)
     assert banked + away.terms["progress"] == pytest.approx(0.0, abs=1e-12)
+
+
+def test_backing_out_through_the_entry_banks_no_progress():
+    """Another shortcut a PPO run found: puncture at the entry, back out at once; the exit used to set the
+    potential to that of a finished stitch. Now the potential after the final exit is the exit point's."""
+    w = RewardConfig()
+    task = _task(NeedleInsert)
+    arc = task.arc
+    task.reset(_obs(arc.point(arc.entry_angle - 0.1)))
+    outcomes = [task.step(_obs(arc.entry, entries=[arc.entry], punctured=True), np.zeros(6))]
+    outcomes += _walk(task, arc, np.linspace(arc.entry_angle, arc.entry_angle + 0.6, 6), punctured=True)
+    assert math.fsum(o.terms["progress"] for o in outcomes) > 0.0
+    out = task.step(_obs(arc.entry, exits=[arc.entry]), np.zeros(6))
+    outcomes.append(out)
+    assert task.state.exited and not out.success and out.terms["exit"] == 0.0
+    assert math.fsum(o.terms["progress"] for o in outcomes) == pytest.approx(0.0, abs=1e-12)
+    again = task.step(_obs(arc.entry, entries=[arc.entry], punctured=True), np.zeros(6))
+    assert again.terms["puncture"] == -w.puncture  # a hole after the stitch is over
+
+
+def test_progress_counts_only_through_the_tissue():
+    """Out of the tissue before any exit, carrying the tip round the circle (above the surface) banks nothing."""
+    task = _task(NeedleInsert)
+    arc = task.arc
+    task.reset(_obs(arc.point(arc.entry_angle - 0.1)))
+    outcomes = [task.step(_obs(arc.entry, entries=[arc.entry], punctured=True), np.zeros(6))]
+    outcomes += _walk(task, arc, np.linspace(arc.entry_angle, arc.exit_angle, 8), punctured=False)
+    assert all(o.terms["progress"] == 0.0 for o in outcomes)
+
+
+def test_wound_gap_crossing_is_capped_at_the_far_face_and_holes_pay_once():
+    w = RewardConfig()
+    task = _task(SutureThrow, kind="wound")
+    arc = task.arc
+    p = arc.access_points
+    far_face = arc.access_progress[2]
+    assert 0.0 < arc.access_progress[1] < far_face < 1.0
+    task.reset(_obs(arc.point(arc.entry_angle - 0.1)))
+    first = task.step(_obs(p[0], entries=[p[0]], punctured=True), np.zeros(6))
+    task.step(_obs(p[1], exits=[p[1]]), np.zeros(6))
+    assert task.state.potential == pytest.approx(arc.access_progress[1])
+    task.step(_obs(arc.exit), np.zeros(6))  # the tip carried to the exit out of the tissue: capped at the far face
+    assert task.state.potential == pytest.approx(far_face)
+    second = task.step(_obs(p[2], entries=[p[2]], punctured=True), np.zeros(6))
+    assert first.terms["puncture"] == w.puncture and second.terms["puncture"] == w.puncture
+    third = task.step(_obs(p[2], entries=[p[2]], punctured=True), np.zeros(6))
+    assert third.terms["puncture"] == 0.0  # re-entering a hole already made pays nothing
+
+
+def test_ending_an_episode_early_costs_more_than_any_stay():
+    """The per-step path penalty made leaving the workspace the best move of a policy that is off the plan: the
+    failure term must outweigh the discounted path penalty of staying for ever, at the worst deviation."""
+    w = RewardConfig()
+    agents = Path(__file__).resolve().parents[1] / "configs" / "agents"
+    gammas = [entry["gamma"] for f in sorted(agents.glob("*.yml"))
+              for env_id, entry in yaml.safe_load(f.read_text()).items() if "Goal" not in env_id]
+    assert gammas and all(w.failure > w.path / (1.0 - g) for g in gammas)
+    task = _task(NeedleInsert)
+    task.reset(_obs(task.arc.point(-2.7)))
+    stay = task.step(_obs(task.arc.point(-2.7) + 0.005), np.zeros(6))
+    assert stay.terms["failure"] == 0.0 and not stay.out_of_workspace
+    away = task.step(_obs(task.workspace[1] + 0.01), np.zeros(6))
+    assert away.out_of_workspace and away.terms["failure"] == -w.failure
+    _assert_exact_sum(task, away)
+
+
+def test_a_tear_that_ends_the_episode_is_a_failure():
+    w = RewardConfig()
+    task = _task(NeedleInsert)
+    task.reset(_obs(task.arc.point(-2.7)))
+    assert task.step(_obs(task.arc.point(-2.7), damaged=True), np.zeros(6)).terms["failure"] == -w.failure
 
 
 def test_leaving_the_workspace_is_flagged():

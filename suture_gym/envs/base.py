@@ -365,9 +365,10 @@ class SutureGoalEnv(SutureEnv):
 
     Observation: ``Dict(observation=Box(...), achieved_goal=Box(G), desired_goal=Box(G))`` with the task's
     ``GOAL_LAYOUT``. Reward terms: ``goal`` (sparse: -1 until the goal is reached, else 0; or dense, see
-    ``reward.goal``), ``tissue_force`` and ``action`` (as in :class:`SutureEnv`). :meth:`compute_reward`
-    recomputes the reward of any (achieved, desired) pair, batched, from the goals and ``info``'s
-    ``reward_tissue_force`` and ``reward_action``; the env's reward is exactly that value.
+    ``reward.goal``), ``failure``, ``tissue_force`` and ``action`` (as in :class:`SutureEnv`).
+    :meth:`compute_reward` recomputes the reward of any (achieved, desired) pair, batched, from the goals and
+    ``info``'s ``reward_failure``, ``reward_tissue_force`` and ``reward_action``; the env's reward is exactly
+    that value.
     """
 
     def __init__(self, task: str = "needle_insert", config=None, render_mode: str | None = None,
@@ -408,14 +409,14 @@ class SutureGoalEnv(SutureEnv):
 
     def compute_reward(self, achieved_goal, desired_goal, info):
         """Reward of ``achieved_goal`` against ``desired_goal``: ``math.fsum`` of the goal term and ``info``'s
-        ``reward_tissue_force`` and ``reward_action``.
+        ``reward_failure``, ``reward_tissue_force`` and ``reward_action``.
 
         Args:
             achieved_goal, desired_goal: ``(G,)`` or ``(B, G)`` arrays.
             info: one info dict, or a sequence of B of them (HER passes an array of dicts). A missing term
                 counts as 0: SB3's ``HerReplayBuffer`` passes empty dicts unless it is built with
-                ``replay_buffer_kwargs={"copy_info_dict": True}``, which keeps the tissue-force and action
-                terms in relabelled rewards.
+                ``replay_buffer_kwargs={"copy_info_dict": True}``, which keeps the failure, tissue-force and
+                action terms in relabelled rewards.
 
         Returns:
             A float for ``(G,)`` goals, else a ``(B,) float64`` array.
@@ -431,6 +432,7 @@ class SutureGoalEnv(SutureEnv):
         if len(infos) != achieved.shape[0]:
             raise ValueError(f"info holds {len(infos)} dicts for {achieved.shape[0]} goals")
         goal = self._goal_term(achieved, desired)
-        rewards = np.array([math.fsum([float(g), i.get("reward_tissue_force", 0.0), i.get("reward_action", 0.0)])
+        read_back = self.task_cls.GOAL_TERMS[1:]
+        rewards = np.array([math.fsum([float(g), *(i.get(f"reward_{t}", 0.0) for t in read_back)])
                             for g, i in zip(goal, infos, strict=True)])
         return float(rewards[0]) if single else rewards

@@ -325,6 +325,7 @@ class RewardConfig(_Section):
     thread: float = 2.0  # per target length of thread pulled through
     closure: float = 5.0  # per initial wound gap closed
     success: float = 5.0  # once, when the task succeeds
+    failure: float = 30.0  # once, when the episode ends in failure (tip out of the workspace, or a tear)
     tissue_force: float = 0.5  # per step at cost 1
     action: float = 0.01  # per step: -w mean(a^2)
     access_tolerance: float = 1.5e-3  # m, how close a puncture or exit must be to its planned point

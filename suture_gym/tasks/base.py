@@ -9,21 +9,30 @@ Reward terms (each reported as ``info["reward_<name>"]``; a task uses a subset, 
 
 * ``path``: ``-w_path d / (d + path_scale)`` with ``d`` the tip's distance (m) to the current planned circle,
   until the stitch's final exit (bounded in ``(-w_path, 0]``).
-* ``progress``: ``w_progress (Phi' - Phi)``, potential-based shaping with ``Phi = stitch + clip(p, 0, 1)`` once
-  the current stitch is punctured (``Phi = stitch`` before, ``stitch + 1`` after its final exit) and ``p`` the
-  tip's fraction of the current planned arc (0 at the entry, 1 at the exit).
+* ``progress``: ``w_progress (Phi' - Phi)``, potential-based shaping with ``p`` the tip's fraction of the current
+  planned arc (0 at the entry, 1 at the exit) and ``Phi = stitch + clip(p, 0, c)``: ``c = 1`` while the tip is in
+  the tissue; after a non-final exit of the stitch (out of the near wound face) ``c`` is the planned fraction of
+  the next entry (the far face); ``Phi = stitch`` before the stitch's first puncture or while the tip is out of
+  the tissue before any exit, and ``stitch + clip(p_exit, 0, 1)`` after its final exit, ``p_exit`` the fraction
+  at the exit point. Progress therefore counts only along a track through the tissue: backing out through the
+  entry hole, or carrying the tip round above the surface, banks nothing.
 * ``entry``: once per stitch, at its first puncture: ``w_entry max(0, 1 - e / access_tolerance)``, ``e`` the
   distance (m) from the puncture to the planned entry.
 * ``exit``: once per stitch, when the tip comes out through the last planned surface: same form with the
   planned exit.
-* ``puncture``: at every puncture, ``+w_puncture`` if it lies within ``access_tolerance`` of a planned entry
-  into tissue (the top entry or, over a wound, the far wound face) of the current stitch, ``-w_puncture``
-  otherwise (an unplanned hole).
+* ``puncture``: at every puncture, ``+w_puncture`` the first time it lies within ``access_tolerance`` of a
+  planned entry into tissue (the top entry or, over a wound, the far wound face) of the current stitch, 0 when
+  that entry was punctured before (re-entering a hole), ``-w_puncture`` otherwise (an unplanned hole, or any
+  puncture after the stitch's final exit).
 * ``thread``: ``w_thread (min(L', T) - min(L, T)) / T`` with ``L`` the thread pulled through the current
   stitch's exit (m) and ``T = plan.thread_target``, counted after the stitch's final exit.
 * ``closure``: ``w_closure (g - g') / g0``: the reduction of the mean wound gap ``g`` (m) this step relative to
   the gap at rest ``g0``.
 * ``success``: ``w_success`` once, on the step the task succeeds.
+* ``failure``: ``-w_failure`` once, on the step an episode ends in failure (the tip leaves the workspace, or
+  the tissue tears with ``termination.end_on_tear``). Without it the per-step penalties (``path``,
+  ``tissue_force``) make ending an episode early pay; it cannot pay once ``w_failure`` exceeds the discounted
+  sum of those penalties, ``w_path / (1 - gamma)`` for the path term.
 * ``tissue_force``: ``-w_tissue_force cost`` with ``cost = max(0, F - safe_force) / (tear_force - safe_force)``
   and ``F`` the largest coupling force (N) of the step; ``info["cost"] = cost`` (>= 0) for safe RL.
 * ``action``: ``-w_action mean(a^2)`` of the raw action.
@@ -105,6 +114,8 @@ class TaskState:
         stitch: index of the current planned arc.
         punctured_stitch: the current stitch has had its first puncture.
         exits_in_stitch: times the tip came out during the current stitch.
+        entries_hit: indices (into the planned access points) of the planned entries punctured so far in the
+            current stitch.
         exited: the current stitch's final exit happened.
         entry_point: ``(3,)`` first puncture of the current stitch, m (nan before).
         exit_point: ``(3,)`` final exit of the current stitch, m (nan before).
@@ -117,6 +128,7 @@ class TaskState:
     stitch: int = 0
     punctured_stitch: bool = False
     exits_in_stitch: int = 0
+    entries_hit: tuple = ()
     exited: bool = False
     entry_point: np.ndarray = field(default_factory=lambda: np.full(3, np.nan))
     exit_point: np.ndarray = field(default_factory=lambda: np.full(3, np.nan))
@@ -177,7 +189,7 @@ class Task(ABC):
     GOAL_LAYOUT: ClassVar[tuple[tuple[str, str], ...]] = ()
     #: Terms of the goal-conditioned variant: the goal term computed from the goals, then the terms read back
     #: from ``info``.
-    GOAL_TERMS: ClassVar[tuple[str, ...]] = ("goal", "tissue_force", "action")
+    GOAL_TERMS: ClassVar[tuple[str, ...]] = ("goal", "failure", "tissue_force", "action")
 
     def __init__(self, arcs, reward, tear_force: float, thread_target: float, closure_target: float,
                  workspace: np.ndarray, gap_rest: float, end_on_tear: bool = True) -> None:
@@ -267,6 +279,8 @@ class Task(ABC):
             # the way is handed back, so ending an episode early can never pay.
             if "progress" in values:
                 values["progress"] = -w.progress * previous_potential
+            if "failure" in values:
+                values["failure"] = -w.failure
             st.potential = 0.0
         return TaskOutcome(
             terms=values,
@@ -289,9 +303,13 @@ class Task(ABC):
         terms = {"entry": 0.0, "exit": 0.0, "puncture": 0.0}
         for point in obs.new_entries:
             arc = self.arc
-            planned_entries = arc.access_points[0::2]
-            near = float(np.min(np.linalg.norm(planned_entries - point, axis=1))) <= tol
-            terms["puncture"] += w.puncture if near and not st.exited else -w.puncture
+            distances = np.linalg.norm(arc.access_points[0::2] - point, axis=1)
+            nearest = 2 * int(np.argmin(distances))
+            if st.exited or float(distances[nearest // 2]) > tol:
+                terms["puncture"] -= w.puncture
+            elif nearest not in st.entries_hit:
+                terms["puncture"] += w.puncture
+                st.entries_hit = (*st.entries_hit, nearest)
             if not st.punctured_stitch and not st.exited:
                 st.punctured_stitch = True
                 st.entry_point = np.array(point, dtype=np.float64)
@@ -309,14 +327,20 @@ class Task(ABC):
         return terms
 
     def _potential(self, obs: Observables) -> float:
-        """``Phi = stitch + clip(progress, 0, 1)`` once the stitch is punctured (``stitch`` before, ``stitch + 1``
-        after its final exit)."""
+        """``Phi`` of the progress term (see the module docstring)."""
         st = self.state
+        arc = self.arc
         if st.exited:
-            return st.stitch + 1.0
+            return st.stitch + min(max(arc.progress(st.exit_point), 0.0), 1.0)
         if not st.punctured_stitch:
             return float(st.stitch)
-        return st.stitch + min(max(self.arc.progress(obs.tip_pos), 0.0), 1.0)
+        if obs.punctured:
+            cap = 1.0
+        elif st.exits_in_stitch > 0:
+            cap = arc.access_progress[min(2 * st.exits_in_stitch, len(arc.access_angles) - 1)]
+        else:
+            cap = 0.0
+        return st.stitch + min(max(arc.progress(obs.tip_pos), 0.0), cap)
 
     def _thread(self, obs: Observables) -> float:
         """Thread pulled through the current stitch, capped at the target (0 before its final exit), m."""
@@ -332,6 +356,7 @@ class Task(ABC):
         st.stitch += 1
         st.punctured_stitch = False
         st.exits_in_stitch = 0
+        st.entries_hit = ()
         st.exited = False
         st.entry_point = np.full(3, np.nan)
         st.exit_point = np.full(3, np.nan)

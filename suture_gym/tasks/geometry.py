@@ -100,6 +100,11 @@ class PlannedArc:
         d = -self.u + 0.5 * self.v
         return d / np.linalg.norm(d)
 
+    @property
+    def access_progress(self) -> np.ndarray:
+        """``(K,)`` fraction of the arc at each planned surface crossing (0 at the entry, 1 at the exit)."""
+        return (self.access_angles - self.entry_angle) / (self.exit_angle - self.entry_angle)
+
     def point(self, angle: float) -> np.ndarray:
         """``(3,)`` point of the circle at ``angle`` (rad), m."""
         return self.center + self.radius * (math.cos(angle) * self.u + math.sin(angle) * self.v)

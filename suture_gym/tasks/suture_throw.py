@@ -21,7 +21,8 @@ class SutureThrow(Task):
     """
 
     NAME = "suture_throw"
-    TERMS = ("path", "progress", "entry", "exit", "puncture", "thread", "success", "tissue_force", "action")
+    TERMS = ("path", "progress", "entry", "exit", "puncture", "thread", "success", "failure", "tissue_force",
+             "action")
     PHASES = ("approach", "inserted", "exited")
     GOAL_SIZE = 9
     GOAL_LAYOUT = (("entry_x", "m"), ("entry_y", "m"), ("entry_z", "m"), ("exit_x", "m"), ("exit_y", "m"),

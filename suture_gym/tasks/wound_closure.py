@@ -19,8 +19,8 @@ class WoundClosure(Task):
     """
 
     NAME = "wound_closure"
-    TERMS = ("path", "progress", "entry", "exit", "puncture", "thread", "closure", "success", "tissue_force",
-             "action")
+    TERMS = ("path", "progress", "entry", "exit", "puncture", "thread", "closure", "success", "failure",
+             "tissue_force", "action")
     PHASES = ("approach", "first_bite")
     GOAL_SIZE = 1
     GOAL_LAYOUT = (("wound_gap", "m"),)
