@@ -251,8 +251,19 @@ def test_goal_env_reward_is_compute_reward(env_id):
     batched = env.compute_reward(np.array(batch_ag), np.array(batch_dg), np.array(infos))
     np.testing.assert_array_equal(batched, rewards)
     relabelled = env.compute_reward(np.array(batch_ag), np.array(batch_ag), infos)
-    own = [math.fsum([i["reward_tissue_force"], i["reward_action"]]) for i in infos]
+    own = [math.fsum([i["reward_failure"], i["reward_tissue_force"], i["reward_action"]]) for i in infos]
     np.testing.assert_array_equal(relabelled, own)  # an achieved goal is always reached
+
+
+def test_a_miss_ends_flat_episodes_only():
+    """Relabelled goals of the goal-conditioned variant may still be reachable after a miss, so only the flat
+    ids end on it (``termination.end_on_miss``)."""
+    flat = gym.make("SutureGym/NeedleInsert-v0").unwrapped
+    goal = gym.make("SutureGym/NeedleInsertGoal-v0").unwrapped
+    off = gym.make("SutureGym/NeedleInsert-v0", config={"termination": {"end_on_miss": False}}).unwrapped
+    for env in (flat, goal, off):
+        env.reset(seed=0)
+    assert flat.task.end_on_miss and not goal.task.end_on_miss and not off.task.end_on_miss
 
 
 def test_render_rgb_array_and_record_video(tmp_path):

@@ -106,12 +106,12 @@ def _obs(tip, *, entries=(), exits=(), force=0.0, gap=0.0, thread=0.0, punctured
     )
 
 
-def _task(cls, kind="pad", stitches=1, reward=None, gap_rest=0.0):
+def _task(cls, kind="pad", stitches=1, reward=None, gap_rest=0.0, end_on_miss=False):
     size = (0.012, 0.024, 0.008) if kind == "pad" else (0.016 * stitches, 0.012, 0.008)
     arcs = plan_stitches(kind, size, 0.004, R, 0.5, stitches)
     workspace = np.array([[-0.02, -0.02, -0.01], [0.05, 0.05, 0.03]])
     return cls(arcs, reward or RewardConfig(), tear_force=3.0, thread_target=0.01, closure_target=0.5,
-               workspace=workspace, gap_rest=gap_rest)
+               workspace=workspace, gap_rest=gap_rest, end_on_miss=end_on_miss)
 
 
 def _assert_exact_sum(task, outcome):
@@ -256,6 +256,35 @@ def test_wound_gap_crossing_is_capped_at_the_far_face_and_holes_pay_once():
     assert first.terms["puncture"] == w.puncture and second.terms["puncture"] == w.puncture
     third = task.step(_obs(p[2], entries=[p[2]], punctured=True), np.zeros(6))
     assert third.terms["puncture"] == 0.0  # re-entering a hole already made pays nothing
+
+
+@pytest.mark.parametrize("where", ["entry", "exit"])
+def test_a_stitch_off_the_plan_is_a_miss_that_ends_the_episode(where):
+    w = RewardConfig()
+    task = _task(NeedleInsert, end_on_miss=True)
+    arc = task.arc
+    off = np.array([0.0, 2.0 * w.access_tolerance, 0.0])
+    task.reset(_obs(arc.point(arc.entry_angle - 0.1)))
+    entry = arc.entry + (off if where == "entry" else 0.0)
+    first = task.step(_obs(entry, entries=[entry], punctured=True), np.zeros(6))
+    if where == "exit":
+        assert not (first.missed or first.failed)
+        _walk(task, arc, np.linspace(arc.entry_angle, arc.exit_angle, 10), punctured=True)
+        first = task.step(_obs(arc.exit - off, exits=[arc.exit - off]), np.zeros(6))
+    assert first.missed and first.failed and not first.success
+    assert first.terms["failure"] == -w.failure
+    assert task.state.potential == 0.0
+    _assert_exact_sum(task, first)
+
+
+def test_a_miss_without_end_on_miss_or_in_wound_closure_does_not_end_it():
+    w = RewardConfig()
+    for task in (_task(NeedleInsert), _task(WoundClosure, kind="wound", gap_rest=0.004, end_on_miss=True)):
+        arc = task.arc
+        task.reset(_obs(arc.point(arc.entry_angle - 0.1), gap=task.gap_rest))
+        wrong = arc.entry + np.array([0.0, 2.0 * w.access_tolerance, 0.0])
+        out = task.step(_obs(wrong, entries=[wrong], punctured=True, gap=task.gap_rest), np.zeros(6))
+        assert out.missed == task.NEEDS_PLANNED_ACCESS and not out.failed and out.terms["failure"] == 0.0
 
 
 def test_ending_an_episode_early_costs_more_than_any_stay():

@@ -12,12 +12,14 @@ Observation: float32 vector laid out in :mod:`suture_gym.envs.spaces` (one row p
 the goal-conditioned variant a Dict with ``observation``, ``achieved_goal`` and ``desired_goal``.
 
 Episode end: ``terminated`` on success, on a tear (coupling force above the tear force, unless
-``termination.end_on_tear`` is off) and when the tip leaves the workspace; ``truncated`` with
+``termination.end_on_tear`` is off), when the tip leaves the workspace, and (flat ids, unless
+``termination.end_on_miss`` is off) once NeedleInsert or SutureThrow can no longer succeed because the stitch was
+entered or exited off the plan; ``truncated`` with
 ``info["diverged"] = True`` when the simulation diverges (the observation is then the last finite one and
 every reward term 0); the time limit comes from registration (``TimeLimit``).
 
 ``info`` at every step: ``is_success``, ``punctured``, ``tip_force`` (N), ``wound_gap`` (m, 0 without a
-wound), ``diverged``, ``cost`` (tissue-force cost >= 0, for safe RL), ``tear``, ``out_of_workspace``,
+wound), ``diverged``, ``cost`` (tissue-force cost >= 0, for safe RL), ``tear``, ``out_of_workspace``, ``missed``,
 ``stitch`` and ``reward_<term>`` for each term of the task, with ``math.fsum`` of the terms equal to the reward
 exactly. ``reset`` adds ``params`` (the sampled episode parameters) and ``phase``.
 """
@@ -81,6 +83,8 @@ class SutureEnv(gym.Env):
     """
 
     metadata = {"render_modes": ["rgb_array"], "render_fps": 50}
+    #: Goal-conditioned variant: a miss never ends its episodes (the relabelled goals may still be reachable).
+    _GOAL_CONDITIONED = False
 
     def __init__(self, task: str = "needle_insert", config=None, render_mode: str | None = None,
                  action_mode: str | None = None) -> None:
@@ -167,9 +171,7 @@ class SutureEnv(gym.Env):
             info = self._info(sim_obs, None, diverged=True)
             return obs, 0.0, False, True, info
         self._last_obs = _copy_obs(obs)
-        terminated = outcome.success or outcome.out_of_workspace or (
-            outcome.tear and self.config.termination.end_on_tear
-        )
+        terminated = outcome.success or outcome.failed
         info = self._info(sim_obs, outcome, diverged=False)
         return obs, self._reward(obs, outcome, info), bool(terminated), False, info
 
@@ -270,6 +272,7 @@ class SutureEnv(gym.Env):
             workspace=self.sim.workspace,
             gap_rest=self.sim.gap_rest,
             end_on_tear=cfg.termination.end_on_tear,
+            end_on_miss=cfg.termination.end_on_miss and not self._GOAL_CONDITIONED,
         )
 
     @staticmethod
@@ -342,6 +345,7 @@ class SutureEnv(gym.Env):
             "cost": float(outcome.cost) if outcome is not None else 0.0,
             "tear": bool(outcome.tear) if outcome is not None else False,
             "out_of_workspace": bool(outcome.out_of_workspace) if outcome is not None else False,
+            "missed": bool(outcome.missed) if outcome is not None else False,
             "stitch": int(self.task.state.stitch),
         }
         for name in terms:
@@ -370,6 +374,8 @@ class SutureGoalEnv(SutureEnv):
     ``info``'s ``reward_failure``, ``reward_tissue_force`` and ``reward_action``; the env's reward is exactly
     that value.
     """
+
+    _GOAL_CONDITIONED = True
 
     def __init__(self, task: str = "needle_insert", config=None, render_mode: str | None = None,
                  action_mode: str | None = None) -> None:

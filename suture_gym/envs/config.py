@@ -349,11 +349,15 @@ class TerminationConfig(_Section):
 
     workspace_margin: float = 0.015  # m, the tip must stay within the tissue's box grown by this margin
     end_on_tear: bool = True  # terminate when the tissue tears (coupling force above coupling.tear_force)
+    # terminate once the task cannot succeed: a stitch entered or exited farther than reward.access_tolerance from
+    # the plan, in tasks that need every stitch on it (NeedleInsert, SutureThrow); never in the goal-conditioned ids
+    end_on_miss: bool = True
 
     def validate(self, path: str) -> None:
         _real(f"{path}.workspace_margin", self.workspace_margin, low=0.0, strict_low=True)
-        if not isinstance(self.end_on_tear, bool):
-            _fail(f"{path}.end_on_tear", f"must be true or false, got {self.end_on_tear!r}")
+        for name in ("end_on_tear", "end_on_miss"):
+            if not isinstance(getattr(self, name), bool):
+                _fail(f"{path}.{name}", f"must be true or false, got {getattr(self, name)!r}")
 
 
 @dataclass(frozen=True)

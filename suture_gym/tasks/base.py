@@ -29,8 +29,10 @@ Reward terms (each reported as ``info["reward_<name>"]``; a task uses a subset, 
 * ``closure``: ``w_closure (g - g') / g0``: the reduction of the mean wound gap ``g`` (m) this step relative to
   the gap at rest ``g0``.
 * ``success``: ``w_success`` once, on the step the task succeeds.
-* ``failure``: ``-w_failure`` once, on the step an episode ends in failure (the tip leaves the workspace, or
-  the tissue tears with ``termination.end_on_tear``). Without it the per-step penalties (``path``,
+* ``failure``: ``-w_failure`` once, on the step an episode ends in failure: the tip leaves the workspace, the
+  tissue tears (with ``termination.end_on_tear``), or the task can no longer succeed (``termination.end_on_miss``:
+  a stitch of a task that needs every stitch on the plan was entered or exited farther than ``access_tolerance``
+  from it). Without it the per-step penalties (``path``,
   ``tissue_force``) make ending an episode early pay; it cannot pay once ``w_failure`` exceeds the discounted
   sum of those penalties, ``w_path / (1 - gamma)`` for the path term.
 * ``tissue_force``: ``-w_tissue_force cost`` with ``cost = max(0, F - safe_force) / (tear_force - safe_force)``
@@ -154,6 +156,10 @@ class TaskOutcome:
         success: the task succeeded this step (or earlier).
         tear: the tissue tore.
         out_of_workspace: the tip left the workspace box.
+        missed: a stitch was entered or exited off the plan and the task needs every stitch on it
+            (:attr:`Task.NEEDS_PLANNED_ACCESS`), so it can no longer succeed.
+        failed: the episode ends in failure: out of the workspace, a tear with ``end_on_tear``, or a miss with
+            ``end_on_miss``.
     """
 
     terms: dict
@@ -162,6 +168,8 @@ class TaskOutcome:
     success: bool
     tear: bool
     out_of_workspace: bool
+    missed: bool
+    failed: bool
 
 
 class Task(ABC):
@@ -175,6 +183,8 @@ class Task(ABC):
         closure_target: fraction of the rest gap to reach (tasks with a wound).
         workspace: ``(2, 3)`` lower and upper corners of the box the tip must stay in, m.
         gap_rest: mean wound gap at rest, m (0 without a wound; only tasks with a wound use it).
+        end_on_tear: a tear ends the episode as a failure.
+        end_on_miss: a miss (see :class:`TaskOutcome`) ends the episode as a failure.
     """
 
     #: Registered name (``EnvConfig.task``).
@@ -190,9 +200,11 @@ class Task(ABC):
     #: Terms of the goal-conditioned variant: the goal term computed from the goals, then the terms read back
     #: from ``info``.
     GOAL_TERMS: ClassVar[tuple[str, ...]] = ("goal", "failure", "tissue_force", "action")
+    #: Success needs each stitch's first puncture and final exit within ``access_tolerance`` of the plan.
+    NEEDS_PLANNED_ACCESS: ClassVar[bool] = False
 
     def __init__(self, arcs, reward, tear_force: float, thread_target: float, closure_target: float,
-                 workspace: np.ndarray, gap_rest: float, end_on_tear: bool = True) -> None:
+                 workspace: np.ndarray, gap_rest: float, end_on_tear: bool = True, end_on_miss: bool = False) -> None:
         if not arcs or not all(isinstance(a, PlannedArc) for a in arcs):
             raise ValueError("arcs must be a non-empty sequence of PlannedArc")
         if not (math.isfinite(tear_force) and tear_force > reward.safe_force):
@@ -208,6 +220,7 @@ class Task(ABC):
         self.workspace = box
         self.gap_rest = float(gap_rest)
         self.end_on_tear = bool(end_on_tear)
+        self.end_on_miss = bool(end_on_miss)
         self.state = TaskState()
 
     # ------------------------------------------------------------------------------------------------------
@@ -274,7 +287,9 @@ class Task(ABC):
         if "action" in values:
             values["action"] = -w.action * float(np.mean(np.square(action)))
         outside = bool(np.any(obs.tip_pos < self.workspace[0]) or np.any(obs.tip_pos > self.workspace[1]))
-        if not success and (outside or (obs.damaged and self.end_on_tear)):
+        missed = self.missed()
+        failed = not success and (outside or (obs.damaged and self.end_on_tear) or (missed and self.end_on_miss))
+        if failed:
             # A failing end is absorbing and its shaping potential is 0 (Ng et al. 1999): the progress banked on
             # the way is handed back, so ending an episode early can never pay.
             if "progress" in values:
@@ -289,7 +304,20 @@ class Task(ABC):
             success=success,
             tear=obs.damaged,
             out_of_workspace=outside,
+            missed=missed,
+            failed=failed,
         )
+
+    def missed(self) -> bool:
+        """Whether the current stitch was entered or exited farther than ``access_tolerance`` from the plan, in a
+        task that needs every stitch on the plan (so it can no longer succeed); always False otherwise."""
+        st = self.state
+        if not self.NEEDS_PLANNED_ACCESS:
+            return False
+        tol = self.reward.access_tolerance
+        entry_off = st.punctured_stitch and float(np.linalg.norm(st.entry_point - self.arc.entry)) > tol
+        exit_off = st.exited and float(np.linalg.norm(st.exit_point - self.arc.exit)) > tol
+        return bool(entry_off or exit_off)
 
     # ------------------------------------------------------------------------------------------------------
     # Events and potentials

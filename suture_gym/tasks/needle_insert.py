@@ -23,6 +23,7 @@ class NeedleInsert(Task):
     NAME = "needle_insert"
     TERMS = ("path", "progress", "entry", "exit", "puncture", "success", "failure", "tissue_force", "action")
     PHASES = ("approach", "inserted")
+    NEEDS_PLANNED_ACCESS = True
     GOAL_SIZE = 8
     GOAL_LAYOUT = (("entry_x", "m"), ("entry_y", "m"), ("entry_z", "m"), ("exit_x", "m"), ("exit_y", "m"),
                    ("exit_z", "m"), ("punctured", "1"), ("exited", "1"))

@@ -24,6 +24,7 @@ class SutureThrow(Task):
     TERMS = ("path", "progress", "entry", "exit", "puncture", "thread", "success", "failure", "tissue_force",
              "action")
     PHASES = ("approach", "inserted", "exited")
+    NEEDS_PLANNED_ACCESS = True
     GOAL_SIZE = 9
     GOAL_LAYOUT = (("entry_x", "m"), ("entry_y", "m"), ("entry_z", "m"), ("exit_x", "m"), ("exit_y", "m"),
                    ("exit_z", "m"), ("punctured", "1"), ("exited", "1"), ("thread", "m"))
