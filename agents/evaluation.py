@@ -43,17 +43,24 @@ def make_policy(policy: str, env: gym.Env, seed: int) -> Callable[[object], np.n
     return _saved_model_policy(Path(policy), env)
 
 
-def _saved_model_policy(path: Path, env: gym.Env) -> Callable[[object], np.ndarray]:
+def run_config(model_path: str | Path) -> dict:
+    """The ``config.yaml`` of the run a saved model belongs to (beside it, or one up for a checkpoint in
+    ``<run>/checkpoints/``) as a mapping; ``{}`` when there is none."""
     import yaml
 
+    model_path = Path(model_path)
+    for folder in (model_path.parent, model_path.parent.parent):
+        if (folder / "config.yaml").exists():
+            return yaml.safe_load((folder / "config.yaml").read_text()) or {}
+    return {}
+
+
+def _saved_model_policy(path: Path, env: gym.Env) -> Callable[[object], np.ndarray]:
     from agents.training import ALGOS, _sibling, algo_class
 
     if not path.exists():
         raise FileNotFoundError(f"policy {str(path)!r} is neither 'random', 'expert' nor an existing model file")
-    config_path = path.parent / "config.yaml"
-    algo = None
-    if config_path.exists():
-        algo = yaml.safe_load(config_path.read_text()).get("algo")
+    algo = run_config(path).get("algo")
     candidates = [algo] if algo else list(ALGOS)
     model = None
     for name in candidates:
@@ -81,6 +88,19 @@ def _saved_model_policy(path: Path, env: gym.Env) -> Callable[[object], np.ndarr
     return act
 
 
+def trained_env_kwargs(policy: str) -> dict:
+    """``env_kwargs`` a saved model was trained with (from its :func:`run_config`, relative config paths
+    resolved); ``{}`` for ``random``, ``expert`` or a model without one."""
+    from agents.hyperparams import resolve
+
+    if policy in ("random", "expert"):
+        return {}
+    hyperparams = run_config(policy).get("hyperparams")
+    if not hyperparams:
+        return {}
+    return dict(resolve(hyperparams)[0].get("env_kwargs") or {})
+
+
 def evaluate(
     env_id: str,
     policy: str,
@@ -91,15 +111,19 @@ def evaluate(
 ) -> dict:
     """Run ``episodes`` episodes (env seeds ``seed, seed + 1, ...``) and summarise them.
 
+    A saved model is evaluated on the env it was trained on: the ``env_kwargs`` of its run's ``config.yaml``
+    (the env config, say) apply unless ``env_kwargs`` overrides them.
+
     Returns:
-        ``{env_id, policy, episodes, seed, success_rate, success_rate_stderr, mean_return, std_return,
-        mean_episode_length, mean_tip_force, mean_final_gap, diverged_episodes, per_episode}``.
+        ``{env_id, env_kwargs, policy, episodes, seed, success_rate, success_rate_stderr, mean_return,
+        std_return, mean_episode_length, mean_tip_force, mean_final_gap, diverged_episodes, per_episode}``.
     """
     import suture_gym  # noqa: F401  (registers the SutureGym ids)
 
     if episodes <= 0:
         raise ValueError(f"episodes must be positive, got {episodes}")
-    env = gym.make(env_id, **(env_kwargs or {}))
+    env_kwargs = {**trained_env_kwargs(policy), **(env_kwargs or {})}
+    env = gym.make(env_id, **env_kwargs)
     act = make_policy(policy, env, seed)
     records: list[Episode] = []
     iterator = range(episodes)
@@ -137,6 +161,7 @@ def evaluate(
     returns = np.array([r.episode_return for r in records])
     return {
         "env_id": env_id,
+        "env_kwargs": {k: v for k, v in env_kwargs.items() if isinstance(v, (str, int, float, bool))},
         "policy": policy,
         "episodes": episodes,
         "seed": seed,

@@ -3,7 +3,10 @@
 Conventions (as in rl-baselines3-zoo, without its ``eval()``):
 
 - ``n_timesteps`` (int, env steps), ``policy`` (SB3 policy name), ``n_envs`` (int), ``normalize`` (bool or
-  a mapping of ``VecNormalize`` keyword arguments), and any keyword argument of the algorithm's constructor.
+  a mapping of ``VecNormalize`` keyword arguments), ``env_kwargs`` (mapping passed to ``gym.make``; a relative
+  ``config`` path is taken from the repository root), ``behaviour_cloning`` (mapping: warm start from the
+  scripted expert, see :data:`BC_KEYS` and :mod:`agents.imitation`), and any keyword argument of the algorithm's
+  constructor.
 - Schedules are strings ``lin_<value>`` (linear decay from ``value`` to 0 over training).
 - ``policy_kwargs`` is a mapping; ``activation_fn`` names a torch module (``tanh``, ``relu``, ``elu``,
   ``leaky_relu``); ``net_arch`` is a list or a dict ``{pi: [...], vf: [...]}`` / ``{pi: [...], qf: [...]}``.
@@ -22,7 +25,10 @@ ROOT = Path(__file__).resolve().parents[1]
 CONFIG_DIR = ROOT / "configs" / "agents"
 
 #: Keys consumed by the training script rather than passed to the algorithm.
-SCRIPT_KEYS = ("n_timesteps", "policy", "n_envs", "normalize", "env_kwargs")
+SCRIPT_KEYS = ("n_timesteps", "policy", "n_envs", "normalize", "env_kwargs", "behaviour_cloning")
+#: Keys of ``behaviour_cloning`` and their defaults: expert episodes recorded (env seeds ``seed + 2000 ...``),
+#: passes over them, minibatch size, Adam step size.
+BC_KEYS = {"expert_episodes": 40, "epochs": 30, "batch_size": 256, "learning_rate": 1e-3}
 
 _ACTIVATIONS = ("tanh", "relu", "elu", "leaky_relu")
 
@@ -61,6 +67,13 @@ def resolve(hyperparams: dict[str, Any]) -> tuple[dict[str, Any], dict[str, Any]
         raise ValueError("agent config needs a 'policy' (e.g. MlpPolicy or MultiInputPolicy)")
     if "n_timesteps" not in script:
         raise ValueError("agent config needs 'n_timesteps' (total env steps)")
+    if "behaviour_cloning" in script:
+        script["behaviour_cloning"] = _behaviour_cloning(script["behaviour_cloning"])
+    env_kwargs = script.get("env_kwargs") or {}
+    if not isinstance(env_kwargs, dict):
+        raise ValueError(f"env_kwargs must be a mapping, got {type(env_kwargs).__name__}")
+    if isinstance(env_kwargs.get("config"), str) and not Path(env_kwargs["config"]).is_absolute():
+        script["env_kwargs"] = {**env_kwargs, "config": str(ROOT / env_kwargs["config"])}
     for key, value in list(params.items()):
         if isinstance(value, str) and value.startswith("lin_"):
             start = _number(value[4:], key)
@@ -75,6 +88,21 @@ def resolve(hyperparams: dict[str, Any]) -> tuple[dict[str, Any], dict[str, Any]
 
         params["replay_buffer_class"] = HerReplayBuffer
     return script, params
+
+
+def _behaviour_cloning(value: Any) -> dict[str, Any]:
+    if not isinstance(value, dict):
+        raise ValueError(f"behaviour_cloning must be a mapping of {sorted(BC_KEYS)}, got {value!r}")
+    unknown = sorted(set(value) - set(BC_KEYS))
+    if unknown:
+        raise ValueError(f"behaviour_cloning has unknown keys {unknown}; known: {sorted(BC_KEYS)}")
+    out = {**BC_KEYS, **value}
+    for key in ("expert_episodes", "epochs", "batch_size"):
+        if isinstance(out[key], bool) or not isinstance(out[key], int) or out[key] < 1:
+            raise ValueError(f"behaviour_cloning.{key} must be an integer >= 1, got {out[key]!r}")
+    if not isinstance(out["learning_rate"], (int, float)) or not out["learning_rate"] > 0:
+        raise ValueError(f"behaviour_cloning.learning_rate must be > 0, got {out['learning_rate']!r}")
+    return out
 
 
 def _number(text: str, key: str) -> float:

@@ -3,6 +3,7 @@
 A run directory holds everything needed to reproduce and inspect the run::
 
     <run>/config.yaml          algo, env id, seed, the agent hyperparameters as written in the YAML, versions
+    <run>/demos.npz            expert demonstrations of the behaviour-cloning warm start (when configured)
     <run>/tb/                  TensorBoard logs
     <run>/checkpoints/         periodic checkpoints (model, VecNormalize statistics, replay buffer for off-policy)
     <run>/eval/evaluations.npz periodic evaluation results (timesteps, returns, lengths, successes)
@@ -144,6 +145,9 @@ def train(
             script["policy"], env, seed=seed, device="cpu", verbose=verbose,
             tensorboard_log=str(run_dir / "tb"), **kwargs,
         )
+    cloning = None
+    if "behaviour_cloning" in script and resume is None:
+        cloning = _warm_start(model, env_id, env_kwargs, script["behaviour_cloning"], run_dir, seed, progress_bar)
 
     callbacks = []
     if checkpoint_freq > 0:
@@ -207,9 +211,26 @@ def train(
         if "successes" in data and len(data["successes"]):
             success = float(np.mean(data["successes"][-1]))
     summary = {"timesteps": int(model.num_timesteps), "wall_s": round(wall, 1),
-               "last_eval_mean_return": mean_return, "last_eval_success_rate": success}
+               "last_eval_mean_return": mean_return, "last_eval_success_rate": success,
+               "behaviour_cloning": cloning}
     (run_dir / "summary.json").write_text(json.dumps(summary, indent=2))
     return TrainResult(run_dir, model_path, int(model.num_timesteps), wall, mean_return, success)
+
+
+def _warm_start(model, env_id: str, env_kwargs: dict, settings: dict, run_dir: Path, seed: int,
+                progress: bool) -> dict:
+    """Record the expert's demonstrations into ``<run>/demos.npz`` and clone them into ``model``
+    (:mod:`agents.imitation`); returns the cloning summary with the recording time (s) and expert success."""
+    from agents.expert import record
+    from agents.imitation import behaviour_clone, load_demos
+
+    t0 = time.perf_counter()
+    demos = run_dir / "demos.npz"
+    recorded = record(env_id, settings["expert_episodes"], demos, seed=seed + 2000, env_kwargs=env_kwargs,
+                      progress=progress)
+    fit = behaviour_clone(model, load_demos(demos), epochs=settings["epochs"], batch_size=settings["batch_size"],
+                          learning_rate=settings["learning_rate"], seed=seed)
+    return {**fit, "expert_success_rate": recorded["success_rate"], "wall_s": round(time.perf_counter() - t0, 1)}
 
 
 def _sibling(checkpoint: Path, kind: str, suffix: str) -> Path | None:

@@ -28,7 +28,8 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--policy", default="random", help="'random', 'expert' or a path to a model .zip")
     parser.add_argument("--episodes", type=int, default=20)
     parser.add_argument("--seed", type=int, default=0, help="episode k uses env seed seed + k")
-    parser.add_argument("--config", default=None, help="env config overrides (a configs/envs/*.yaml path)")
+    parser.add_argument("--config", default=None,
+                        help="env config overrides, a configs/envs/*.yaml path (default: a model's training config)")
     parser.add_argument("--json", action="store_true", help="print JSON")
     parser.add_argument("--per-episode", action="store_true", help="include per-episode records")
     args = parser.parse_args(argv)

@@ -2,11 +2,12 @@
 
 Steps:
 
-1. train PPO (``configs/agents/ppo.yml``) on ``SutureGym/NeedleInsert-v0`` for ``--n-timesteps`` env steps with
-   a progress bar, evaluating every ``--eval-freq`` steps (``agents.training.train``; run directory
-   ``<out>/ppo_NeedleInsert_s<seed>/``);
-2. evaluate the final model on ``--episodes`` seeded episodes, and the scripted expert and random actions on
-   the same seeds for scale (``agents.evaluation.evaluate``) -> ``<run>/evaluation.json``;
+1. train PPO (``configs/agents/ppo.yml``) on ``SutureGym/NeedleInsert-v0`` with its randomised config for
+   ``--n-timesteps`` env steps with a progress bar, evaluating every ``--eval-freq`` steps
+   (``agents.training.train``; run directory ``<out>/ppo_NeedleInsert_s<seed>/``). The config warm-starts the
+   policy by behaviour cloning 40 scripted-expert episodes (recorded first, about a minute);
+2. evaluate the final model on ``--episodes`` seeded episodes of the same env config, and the scripted expert
+   and random actions on the same seeds for scale (``agents.evaluation.evaluate``) -> ``<run>/evaluation.json``;
 3. the learning curve -> ``<run>/learning_curve.png`` (written by the training);
 4. a video of one episode of the trained policy -> ``<run>/policy.mp4``.
 
@@ -34,7 +35,7 @@ configure(threads=1)
 import gymnasium as gym  # noqa: E402
 
 import suture_gym  # noqa: E402, F401  (registers the ids)
-from agents.evaluation import evaluate, make_policy  # noqa: E402
+from agents.evaluation import evaluate, make_policy, trained_env_kwargs  # noqa: E402
 from agents.training import train  # noqa: E402
 from suture_gym.render import write_video  # noqa: E402
 
@@ -47,7 +48,7 @@ VIDEO_EVERY = 8
 def record_policy_video(env_id: str, policy: str, path: Path, seed: int) -> dict:
     """Film one episode of ``policy`` (``random``, ``expert`` or a model ``.zip``) on ``env_id``, env seed
     ``seed``, into ``path`` (real time). Returns ``{path, frames, steps, success, return}``."""
-    env = gym.make(env_id, render_mode="rgb_array")
+    env = gym.make(env_id, render_mode="rgb_array", **trained_env_kwargs(policy))
     act = make_policy(policy, env, seed)
     summary = {"steps": 0, "success": False, "return": 0.0}
 
@@ -87,7 +88,8 @@ def main(argv: list[str] | None = None) -> int:
                    eval_freq=args.eval_freq, eval_episodes=5, checkpoint_freq=args.eval_freq, progress_bar=True)
     print(f"[2/3] evaluating on {args.episodes} seeded episodes", flush=True)
     seed = args.seed + 10_000
-    evaluations = {name: evaluate(ENV_ID, policy, args.episodes, seed=seed, progress=True)
+    env_kwargs = trained_env_kwargs(str(result.model_path))
+    evaluations = {name: evaluate(ENV_ID, policy, args.episodes, seed=seed, env_kwargs=env_kwargs, progress=True)
                    for name, policy in (("trained", str(result.model_path)), ("expert", "expert"),
                                         ("random", "random"))}
     for summary in evaluations.values():

@@ -34,7 +34,8 @@ SMOKE = (
 def test_config_trains_saves_loads_and_evaluates(tmp_path, algo, env_id, steps):
     hyperparams = load_hyperparams(algo, env_id)
     if algo == "ppo":
-        hyperparams.update(n_envs=2, n_steps=64, batch_size=64, n_epochs=1)
+        hyperparams.update(n_envs=2, n_steps=64, batch_size=64, n_epochs=1,
+                           behaviour_cloning={"expert_episodes": 1, "epochs": 1})
     else:
         hyperparams.update(learning_starts=100, batch_size=32, buffer_size=1000,
                            env_kwargs={"max_episode_steps": 40})
@@ -42,6 +43,7 @@ def test_config_trains_saves_loads_and_evaluates(tmp_path, algo, env_id, steps):
                    progress_bar=False, hyperparams=hyperparams)
     assert result.model_path.exists()
     assert result.timesteps >= steps
+    assert (result.run_dir / "demos.npz").exists() == ("behaviour_cloning" in hyperparams)
     summary = evaluate(env_id, str(result.model_path), episodes=1, seed=5,
                        env_kwargs={"max_episode_steps": 20})
     assert summary["episodes"] == 1

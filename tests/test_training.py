@@ -38,11 +38,25 @@ def test_resolve_turns_strings_into_objects():
         ({"policy_kwargs": "dict(net_arch=[8])"}, "no strings to eval"),
         ({"policy_kwargs": {"activation_fn": "sigmoid"}}, "sigmoid"),
         ({"replay_buffer_class": "PrioritizedReplayBuffer"}, "PrioritizedReplayBuffer"),
+        ({"behaviour_cloning": {"episodes": 3}}, "episodes"),
+        ({"behaviour_cloning": {"epochs": 0}}, "behaviour_cloning.epochs"),
+        ({"behaviour_cloning": {"learning_rate": -1.0}}, "behaviour_cloning.learning_rate"),
+        ({"env_kwargs": "config.yaml"}, "env_kwargs"),
     ],
 )
 def test_resolve_names_bad_values(change, message):
     with pytest.raises(ValueError, match=message):
         resolve({**TINY, **change})
+
+
+def test_relative_env_config_is_taken_from_the_repository():
+    from agents.hyperparams import ROOT
+
+    script, _ = resolve({**TINY, "env_kwargs": {"config": "configs/envs/needle_insert.yaml"},
+                         "behaviour_cloning": {"epochs": 5}})
+    assert script["env_kwargs"]["config"] == str(ROOT / "configs" / "envs" / "needle_insert.yaml")
+    assert script["behaviour_cloning"] == {"expert_episodes": 40, "epochs": 5, "batch_size": 256,
+                                           "learning_rate": 1e-3}
 
 
 def test_missing_policy_or_env_entry_is_named(tmp_path):

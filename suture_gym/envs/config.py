@@ -325,7 +325,8 @@ class RewardConfig(_Section):
     thread: float = 2.0  # per target length of thread pulled through
     closure: float = 5.0  # per initial wound gap closed
     success: float = 5.0  # once, when the task succeeds
-    failure: float = 30.0  # once, when the episode ends in failure (tip out of the workspace, or a tear)
+    # once, when the episode ends in failure; must exceed path / (1 - gamma) of the agent (tasks set their own)
+    failure: float = 10.0
     tissue_force: float = 0.5  # per step at cost 1
     action: float = 0.01  # per step: -w mean(a^2)
     access_tolerance: float = 1.5e-3  # m, how close a puncture or exit must be to its planned point
@@ -430,6 +431,7 @@ _TASK_DEFAULTS: dict[str, dict] = {
         "scene": {"kind": "wound", "size": (0.012, 0.012, 0.008)},
         "suture": {"node_count": 31, "length": 0.03},
         "observation": {"suture_samples": 4},
+        "reward": {"failure": 20.0},
     },
     "wound_closure": {
         "task": "wound_closure",
@@ -437,6 +439,7 @@ _TASK_DEFAULTS: dict[str, dict] = {
         "suture": {"node_count": 61, "length": 0.06},
         "plan": {"stitches": 3},
         "observation": {"suture_samples": 4},
+        "reward": {"failure": 30.0},
     },
 }
 
