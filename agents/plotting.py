@@ -1,19 +1,32 @@
-"""Learning-curve plot from SB3's ``EvalCallback`` output (``evaluations.npz``)."""
+"""Learning-curve plots from SB3's ``EvalCallback`` output (``evaluations.npz``), one run or several.
+
+Command line (e.g. the seeds of a baseline side by side)::
+
+    python -m agents.plotting runs/ppo_NeedleInsert_s*/eval/evaluations.npz --out curve.png --title "PPO"
+"""
 
 from __future__ import annotations
 
+import argparse
+from collections.abc import Sequence
 from pathlib import Path
 
 import numpy as np
 
 
-def plot_learning_curve(evaluations: str | Path, out_png: str | Path, title: str = "") -> Path:
-    """Plot mean ± std evaluation return and, when recorded, the success rate against env steps.
+def plot_learning_curve(evaluations: str | Path | Sequence[str | Path], out_png: str | Path, title: str = "",
+                        labels: Sequence[str] | None = None) -> Path:
+    """Plot the evaluation return and, when recorded, the success rate against env steps.
+
+    One run is drawn as its mean with a ± std band over the evaluation episodes; several runs (seeds, or
+    variants) as one labelled line each.
 
     Args:
-        evaluations: ``evaluations.npz`` written by ``EvalCallback`` (keys ``timesteps (E,)``,
-            ``results (E, episodes)``, optionally ``successes (E, episodes)``).
+        evaluations: one ``evaluations.npz`` written by ``EvalCallback`` (keys ``timesteps (E,)``,
+            ``results (E, episodes)``, optionally ``successes (E, episodes)``), or a sequence of them.
         out_png: where to write the figure (a small PNG, ~100 dpi).
+        title: figure title.
+        labels: one legend label per file (default: the run directory's name).
 
     Returns:
         ``out_png`` as a Path.
@@ -23,20 +36,38 @@ def plot_learning_curve(evaluations: str | Path, out_png: str | Path, title: str
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt
 
-    data = np.load(evaluations)
-    steps = data["timesteps"]
-    results = data["results"]
-    has_success = "successes" in data and len(data["successes"]) == len(steps) and data["successes"].size
+    paths = [Path(evaluations)] if isinstance(evaluations, (str, Path)) else [Path(p) for p in evaluations]
+    if not paths:
+        raise ValueError("evaluations must name at least one evaluations.npz")
+    if labels is None:
+        labels = [p.parent.parent.name if p.parent.name == "eval" else p.stem for p in paths]
+    if len(labels) != len(paths):
+        raise ValueError(f"got {len(labels)} labels for {len(paths)} evaluation files")
+    runs = []
+    for path in paths:
+        with np.load(path) as data:
+            runs.append({key: data[key] for key in data.files})
+    has_success = any("successes" in r and r["successes"].size and len(r["successes"]) == len(r["timesteps"])
+                      for r in runs)
     fig, axes = plt.subplots(1, 2 if has_success else 1, figsize=(9 if has_success else 5, 3.2), dpi=100)
     axes = np.atleast_1d(axes)
-    mean, std = results.mean(axis=1), results.std(axis=1)
-    axes[0].plot(steps, mean, color="tab:blue")
-    axes[0].fill_between(steps, mean - std, mean + std, color="tab:blue", alpha=0.2)
+    single = len(runs) == 1
+    for k, (run, label) in enumerate(zip(runs, labels, strict=True)):
+        color = "tab:blue" if single else f"C{k}"
+        steps = run["timesteps"]
+        mean, std = run["results"].mean(axis=1), run["results"].std(axis=1)
+        axes[0].plot(steps, mean, color=color, label=None if single else label)
+        if single:
+            axes[0].fill_between(steps, mean - std, mean + std, color=color, alpha=0.2)
+        successes = run.get("successes")
+        if has_success and successes is not None and successes.size and len(successes) == len(steps):
+            axes[1].plot(steps, successes.mean(axis=1) * 100.0, color="tab:green" if single else color)
     axes[0].set_xlabel("env steps")
     axes[0].set_ylabel("evaluation return")
     axes[0].grid(alpha=0.3)
+    if not single:
+        axes[0].legend(fontsize=8)
     if has_success:
-        axes[1].plot(steps, data["successes"].mean(axis=1) * 100.0, color="tab:green")
         axes[1].set_xlabel("env steps")
         axes[1].set_ylabel("success rate (%)")
         axes[1].set_ylim(-2, 102)
@@ -48,3 +79,18 @@ def plot_learning_curve(evaluations: str | Path, out_png: str | Path, title: str
     fig.savefig(out_png)
     plt.close(fig)
     return out_png
+
+
+def main(argv: list[str] | None = None) -> int:
+    parser = argparse.ArgumentParser(description="Plot learning curves from EvalCallback evaluations.npz files.")
+    parser.add_argument("evaluations", nargs="+", help="evaluations.npz files, one per run")
+    parser.add_argument("--out", required=True, help="output PNG")
+    parser.add_argument("--title", default="")
+    parser.add_argument("--labels", nargs="+", default=None, help="one legend label per file")
+    args = parser.parse_args(argv)
+    print(plot_learning_curve(args.evaluations, args.out, title=args.title, labels=args.labels))
+    return 0
+
+
+if __name__ == "__main__":
+    raise SystemExit(main())

@@ -104,3 +104,22 @@ def test_random_policy_evaluation_is_seeded():
     a = evaluate("Pendulum-v1", "random", episodes=2, seed=11)
     b = evaluate("Pendulum-v1", "random", episodes=2, seed=11)
     assert a["mean_return"] == b["mean_return"]
+
+
+def test_learning_curves_of_one_run_and_of_several(tmp_path):
+    pytest.importorskip("matplotlib")
+    from agents.plotting import main, plot_learning_curve
+
+    files = []
+    for k in range(2):
+        path = tmp_path / f"run{k}" / "eval" / "evaluations.npz"
+        path.parent.mkdir(parents=True)
+        np.savez(path, timesteps=np.array([10, 20, 30]), results=np.arange(9.0).reshape(3, 3) + k,
+                 ep_lengths=np.ones((3, 3)), successes=np.array([[0, 0, 1], [0, 1, 1], [1, 1, 1]]))
+        files.append(path)
+    one = plot_learning_curve(files[0], tmp_path / "one.png", title="one")
+    assert main([str(f) for f in files] + ["--out", str(tmp_path / "two.png"), "--labels", "a", "b"]) == 0
+    for png in (one, tmp_path / "two.png"):
+        assert png.read_bytes()[:8] == b"\x89PNG\r\n\x1a\n" and png.stat().st_size > 5000
+    with pytest.raises(ValueError, match="labels"):
+        plot_learning_curve(files, tmp_path / "bad.png", labels=["only one"])
