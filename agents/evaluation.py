@@ -61,11 +61,14 @@ def _saved_model_policy(path: Path, env: gym.Env) -> Callable[[object], np.ndarr
     if not path.exists():
         raise FileNotFoundError(f"policy {str(path)!r} is neither 'random', 'expert' nor an existing model file")
     algo = run_config(path).get("algo")
+    from stable_baselines3.common.vec_env import DummyVecEnv
+
     candidates = [algo] if algo else list(ALGOS)
+    vec_env = DummyVecEnv([lambda: env])  # HER needs an env to load; wrapped here, SB3 prints nothing to stdout
     model = None
     for name in candidates:
         try:
-            model = algo_class(name).load(path, env=env, device="cpu")  # HER needs the env to load
+            model = algo_class(name).load(path, env=vec_env, device="cpu")
             break
         except (ValueError, KeyError, RuntimeError, TypeError, AssertionError):
             continue

@@ -11,8 +11,9 @@ Steps:
 3. the learning curve -> ``<run>/learning_curve.png`` (written by the training);
 4. a video of one episode of the trained policy -> ``<run>/policy.mp4``.
 
-Budget: the default 100 000 env steps take about 10-15 minutes on a 2-core laptop (about 150-200 env steps/s
-for PPO with 4 envs, evaluations included). Prints one JSON summary at the end.
+Budget: recording and cloning the demonstrations takes about a minute and the default 100 000 PPO env steps
+about 7-10 minutes on a 2-core laptop (200-300 env steps/s with 4 envs, evaluations included); the final
+evaluations and the video a few more. Prints one JSON summary at the end.
 
 Usage::
 

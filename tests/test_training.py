@@ -69,9 +69,9 @@ def test_missing_policy_or_env_entry_is_named(tmp_path):
         load_hyperparams("dqn", "Pendulum-v1", config_dir=tmp_path)
 
 
-def test_train_writes_run_resumes_and_evaluates(tmp_path):
+def test_train_writes_run_resumes_and_evaluates(tmp_path, capsys):
     common = dict(seed=3, out_dir=tmp_path, eval_freq=128, eval_episodes=1, checkpoint_freq=128,
-                  progress_bar=False, hyperparams=TINY)
+                  progress_bar=False, verbose=1, hyperparams=TINY)
     first = train("ppo", "Pendulum-v1", n_timesteps=256, **common)
     run = tmp_path / run_name("ppo", "Pendulum-v1", 3)
     assert first.run_dir == run and first.timesteps == 256
@@ -88,7 +88,9 @@ def test_train_writes_run_resumes_and_evaluates(tmp_path):
     steps = np.load(run / "eval" / "evaluations.npz")["timesteps"]
     assert steps.tolist() == [128, 256, 384, 512]  # the resumed run kept the first half of the curve
 
+    capsys.readouterr()
     summary = evaluate("Pendulum-v1", str(second.model_path), episodes=2, seed=5)
+    assert capsys.readouterr().out == ""  # scripts/evaluate.py --json prints the summary alone on stdout
     assert summary["episodes"] == 2 and summary["mean_episode_length"] == 200.0
     assert np.isfinite(summary["mean_return"])
     assert summary["mean_tip_force"] is None  # Pendulum reports no tip force
