@@ -7,6 +7,7 @@ from the env's ``info``; envs that do not report them give ``None``.
 
 from __future__ import annotations
 
+import json
 import math
 from collections.abc import Callable
 from dataclasses import asdict, dataclass
@@ -111,11 +112,15 @@ def evaluate(
     seed: int = 0,
     env_kwargs: dict | None = None,
     progress: bool = False,
+    records_path: str | Path | None = None,
 ) -> dict:
     """Run ``episodes`` episodes (env seeds ``seed, seed + 1, ...``) and summarise them.
 
     A saved model is evaluated on the env it was trained on: the ``env_kwargs`` of its run's ``config.yaml``
     (the env config, say) apply unless ``env_kwargs`` overrides them.
+
+    With ``records_path``, each episode's record is appended to that file as one JSON line as soon as the episode
+    ends, so a long evaluation that is interrupted keeps what it measured.
 
     Returns:
         ``{env_id, env_kwargs, policy, episodes, seed, success_rate, success_rate_stderr, mean_return,
@@ -159,6 +164,9 @@ def evaluate(
                 diverged=bool(info.get("diverged", False)),
             )
         )
+        if records_path is not None:
+            with open(records_path, "a") as fh:
+                fh.write(json.dumps({"env_id": env_id, "policy": policy, **asdict(records[-1])}) + "\n")
     env.close()
     successes = np.array([r.success for r in records], dtype=float)
     returns = np.array([r.episode_return for r in records])

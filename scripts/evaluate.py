@@ -32,13 +32,15 @@ def main(argv: list[str] | None = None) -> int:
                         help="env config overrides, a configs/envs/*.yaml path (default: a model's training config)")
     parser.add_argument("--json", action="store_true", help="print JSON")
     parser.add_argument("--per-episode", action="store_true", help="include per-episode records")
+    parser.add_argument("--records", default=None,
+                        help="append each episode's record to this file as a JSON line as soon as it ends")
     args = parser.parse_args(argv)
     if args.episodes <= 0:
         parser.error(f"--episodes must be positive, got {args.episodes}")
 
     env_kwargs = {"config": args.config} if args.config is not None else None
     summary = evaluate(args.env, args.policy, args.episodes, seed=args.seed, env_kwargs=env_kwargs,
-                       progress=not args.json)
+                       progress=not args.json, records_path=args.records)
     if not args.per_episode:
         summary.pop("per_episode")
     if args.json:

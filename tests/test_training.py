@@ -108,6 +108,16 @@ def test_random_policy_evaluation_is_seeded():
     assert a["mean_return"] == b["mean_return"]
 
 
+def test_evaluation_streams_each_episode_as_a_json_line(tmp_path):
+    import json
+
+    records = tmp_path / "episodes.jsonl"
+    summary = evaluate("Pendulum-v1", "random", episodes=3, seed=11, records_path=records)
+    lines = [json.loads(line) for line in records.read_text().splitlines()]
+    assert [r["seed"] for r in lines] == [11, 12, 13]
+    assert [r["episode_return"] for r in lines] == [r["episode_return"] for r in summary["per_episode"]]
+
+
 def test_learning_curves_of_one_run_and_of_several(tmp_path):
     pytest.importorskip("matplotlib")
     from agents.plotting import main, plot_learning_curve
