@@ -11,6 +11,7 @@ Conventions (as in rl-baselines3-zoo, without its ``eval()``):
 - ``policy_kwargs`` is a mapping; ``activation_fn`` names a torch module (``tanh``, ``relu``, ``elu``,
   ``leaky_relu``); ``net_arch`` is a list or a dict ``{pi: [...], vf: [...]}`` / ``{pi: [...], qf: [...]}``.
 - ``replay_buffer_class: HerReplayBuffer`` with ``replay_buffer_kwargs`` selects HER for goal-conditioned envs.
+- Top-level keys starting with ``_`` hold shared settings for YAML anchors (``<<: *name``); they are not env ids.
 """
 
 from __future__ import annotations
@@ -49,7 +50,7 @@ def load_hyperparams(algo: str, env_id: str, config_dir: Path = CONFIG_DIR) -> d
     if not path.exists():
         raise ValueError(f"no agent config for algo {algo!r}; known: {algorithms()}")
     with open(path) as fh:
-        table = yaml.safe_load(fh) or {}
+        table = {key: value for key, value in (yaml.safe_load(fh) or {}).items() if not key.startswith("_")}
     if env_id not in table:
         raise ValueError(f"{path.name} has no entry for env {env_id!r}; it has {sorted(table)}")
     return copy.deepcopy(table[env_id])

@@ -62,9 +62,11 @@ def test_relative_env_config_is_taken_from_the_repository():
 def test_missing_policy_or_env_entry_is_named(tmp_path):
     with pytest.raises(ValueError, match="policy"):
         resolve({"n_timesteps": 10})
-    (tmp_path / "ppo.yml").write_text(yaml.safe_dump({"Pendulum-v1": TINY}))
-    with pytest.raises(ValueError, match="CartPole-v1"):
+    (tmp_path / "ppo.yml").write_text(yaml.safe_dump({"_shared": TINY, "Pendulum-v1": TINY}))
+    with pytest.raises(ValueError, match=r"CartPole-v1.*\['Pendulum-v1'\]"):  # the anchor key is no env id
         load_hyperparams("ppo", "CartPole-v1", config_dir=tmp_path)
+    with pytest.raises(ValueError, match="_shared"):
+        load_hyperparams("ppo", "_shared", config_dir=tmp_path)
     with pytest.raises(ValueError, match="dqn"):
         load_hyperparams("dqn", "Pendulum-v1", config_dir=tmp_path)
 
