@@ -70,7 +70,9 @@ Projection (called by :class:`~suture_gym.sim.solver.Solver`)
   embedded in (:func:`embedded_inv_mass`), in their Gauss-Seidel node-path rows
   (:func:`project_suture_path_rows`) and in the rod's solve, and they slide freely along the path.
 * Suture contact rows are one-sided contact rows inside the rod's direct solve, made two-way with the
-  tissue (:func:`suture_contact_rows`, :func:`rod_iteration_with_contacts`, :func:`apply_contact_reaction`).
+  tissue: :func:`suture_contact_rows` gives each row the triangle's share of its inverse mass, which
+  :func:`~suture_gym.sim.rod.rod_iteration_kernel` adds to the row, and :func:`apply_contact_reaction` moves
+  the tissue by its share.
 * Node-access rows are Gauss-Seidel on the strand piece centred on the access point (:func:`project_access_rows`).
 * Contact rows of a node that started the substep inside the resistance layer push it out by at most
   ``depenetration_speed * dt`` (:func:`contact_floors`): an old penetration is resolved over several
@@ -102,13 +104,6 @@ from suture_gym.sim.collision import (
 )
 from suture_gym.sim.needle import point_inv_mass_matrix
 from suture_gym.sim.quat import quat_from_rotation_vector, quat_mul, quat_normalize, quat_to_matrix
-from suture_gym.sim.rod import (
-    align_frames,
-    apply_rod_solution,
-    assemble_rod_system,
-    release_contact,
-    solve_block_tridiagonal,
-)
 
 #: Node states of paper section 4.1.
 NODE_HEAD = 0
@@ -128,8 +123,6 @@ PATH_ROW_VERTICES = 8
 #: Below this length (m) a direction is undefined and the constraint is skipped (degenerate geometry).
 _TINY_LENGTH = 1.0e-12
 
-#: Most re-solves per rod iteration that release suture-tissue contacts whose multiplier would pull.
-CONTACT_RELEASE_PASSES = 4
 
 
 def _is_real(value) -> bool:
@@ -1918,128 +1911,6 @@ def suture_contact_rows(
         out_normal[j] = row_contact_normal[i]
         for v in range(3):
             out_tissue_w[j] += b[v] * b[v] * tissue_inv_mass[tri_vertices[tri, v]]
-
-
-@njit(cache=True)
-def rod_iteration_with_contacts(
-    node_inv_mass,
-    seg_rest_length,
-    seg_inv_inertia,
-    seg_stretch_compliance,
-    bend_compliance,
-    dt,
-    tolerance,
-    has_needle,
-    needle_inv_mass,
-    needle_inv_inertia_body,
-    swage_body,
-    seg_quat_start,
-    seg_tension_prev,
-    contact_gap,
-    contact_normal,
-    contact_tissue_w,
-    seg_rot,
-    seg_s,
-    seg_winv,
-    bend_b,
-    seg_h,
-    att_r,
-    att_winv,
-    contact_active,
-    diag,
-    lower,
-    rhs,
-    dinv,
-    y,
-    z,
-    lam,
-    node_pos,
-    seg_quat,
-    needle_pos,
-    needle_quat,
-    contact_push,
-):
-    """One direct XPBD iteration of the suture (the rod's :func:`~suture_gym.sim.rod.rod_iteration_kernel`)
-    whose contact rows are two-way with the tissue.
-
-    The rod's solve treats a contact as a static obstacle; a tissue triangle is not: its vertices weigh about
-    1e-4 kg against the 20 g needle that a thread pressed onto the tissue can transmit. So each active
-    contact row's diagonal gets the triangle point's generalised inverse mass ``contact_tissue_w`` (the
-    tissue's share of ``J M^-1 J^T``), which makes the multiplier the two-way XPBD one; the caller moves the
-    tissue by its share afterwards (:func:`apply_contact_reaction`). Contacts whose multiplier would pull are
-    released and the system re-solved (at most :data:`CONTACT_RELEASE_PASSES` times), as in the rod's kernel.
-    Returns the residual before the solve.
-    """
-    align_frames(node_pos, seg_inv_inertia, seg_quat)
-    residual = assemble_rod_system(
-        node_pos,
-        seg_quat,
-        node_inv_mass,
-        seg_rest_length,
-        seg_inv_inertia,
-        seg_stretch_compliance,
-        bend_compliance,
-        seg_quat_start,
-        seg_tension_prev,
-        contact_gap,
-        contact_normal,
-        lam,
-        dt,
-        has_needle,
-        needle_pos,
-        needle_quat,
-        needle_inv_mass,
-        needle_inv_inertia_body,
-        swage_body,
-        seg_rot,
-        seg_s,
-        seg_winv,
-        bend_b,
-        seg_h,
-        att_r,
-        att_winv,
-        contact_active,
-        diag,
-        lower,
-        rhs,
-    )
-    if residual <= tolerance:
-        return residual
-    for i in range(node_pos.shape[0]):
-        if contact_active[i]:
-            diag[i, 6, 6] += contact_tissue_w[i]
-    solve_block_tridiagonal(diag, lower, rhs, dinv, y, z)
-    for _ in range(CONTACT_RELEASE_PASSES):
-        released = False
-        for i in range(node_pos.shape[0]):
-            if contact_active[i] and lam[i, 6] + z[i, 6] < 0.0:
-                release_contact(i, lam[i, 6], contact_active, diag, lower, rhs)
-                released = True
-        if not released:
-            break
-        solve_block_tridiagonal(diag, lower, rhs, dinv, y, z)
-    apply_rod_solution(
-        node_inv_mass,
-        seg_rest_length,
-        seg_s,
-        seg_winv,
-        bend_b,
-        seg_h,
-        has_needle,
-        needle_inv_mass,
-        att_r,
-        att_winv,
-        contact_active,
-        contact_normal,
-        z,
-        lam,
-        node_pos,
-        seg_quat,
-        needle_pos,
-        needle_quat,
-        contact_push,
-    )
-    return residual
 
 
 @njit(cache=True)

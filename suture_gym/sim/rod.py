@@ -64,9 +64,9 @@ BLOCK = 7
 #: dragged over the ground: once |h| <= 1e-3 rad the nodes are within ~3e-8 m (3e-5 of a segment) of the fully
 #: converged solve, so a tolerance of 1e-6 on the weighted value stops there.
 _FRAME_RESIDUAL_WEIGHT = 1.0e-3
-#: Most re-solves per iteration for releasing contacts that would pull (a thread peeling off the ground
-#: releases about one node per pass; the rest follow in the next iterations).
-_MAX_RELEASE_PASSES = 3
+#: Most re-solves per iteration for releasing contacts that would pull (a thread peeling off the ground or the
+#: tissue releases about one node per pass; the rest follow in the next iterations).
+_MAX_RELEASE_PASSES = 4
 
 
 def _is_real(value) -> bool:
@@ -297,6 +297,7 @@ class RodWork:
         self.seg_tension_prev = np.zeros(n - 1)
         self.contact_gap = np.full(n, np.inf)
         self.contact_normal = np.zeros((n, 3))
+        self.contact_obstacle_w = np.zeros(n)  # static obstacles only: they take no share of a contact row
         self.contact_active = np.zeros(n, dtype=np.bool_)
         self.contact_push = np.zeros((n, 3))
         self.att_r = np.zeros(3)
@@ -987,6 +988,7 @@ def rod_iteration_kernel(
     seg_tension_prev,
     contact_gap,
     contact_normal,
+    contact_obstacle_w,
     seg_rot,
     seg_s,
     seg_winv,
@@ -1009,7 +1011,13 @@ def rod_iteration_kernel(
     contact_push,
 ):
     """One direct XPBD iteration: align frames, assemble; if the residual exceeds ``tolerance``, solve and
-    apply. Returns the residual before the solve (see :func:`assemble_rod_system`)."""
+    apply. Returns the residual before the solve (see :func:`assemble_rod_system`).
+
+    ``contact_obstacle_w`` (N,) is the obstacle's share of each contact row's generalised inverse mass,
+    ``J M^-1 J^T``: 0 for static obstacles; for a deformable one (a tissue triangle, see
+    :func:`~suture_gym.sim.coupling.suture_contact_rows`) it makes the contact multiplier the two-way XPBD one,
+    and the caller moves the obstacle by its share afterwards.
+    """
     align_frames(node_pos, seg_inv_inertia, seg_quat)
     residual = assemble_rod_system(
         node_pos,
@@ -1045,6 +1053,9 @@ def rod_iteration_kernel(
     )
     if residual <= tolerance:
         return residual
+    for i in range(node_pos.shape[0]):
+        if contact_active[i]:
+            diag[i, 6, 6] += contact_obstacle_w[i]
     # active-set refinement: contacts whose multiplier would turn negative (pull) are released and the system
     # re-solved; contacts still pulling after the last pass stay in for this iteration (the solution remains
     # consistent) and are released by the next iteration's activation rule.
@@ -1223,7 +1234,8 @@ def _iteration_args(model, state, work, dt, tolerance, needle_model, needle_stat
     return (
         model.node_inv_mass, model.seg_rest_length, model.seg_inv_inertia, model.seg_stretch_compliance,
         model.bend_compliance, float(dt), float(tolerance), has_needle, n_inv_mass, n_inv_inertia, swage,
-        work.seg_quat_start, work.seg_tension_prev, work.contact_gap, work.contact_normal, work.seg_rot,
+        work.seg_quat_start, work.seg_tension_prev, work.contact_gap, work.contact_normal, work.contact_obstacle_w,
+        work.seg_rot,
         work.seg_s, work.seg_winv, work.bend_b, work.seg_h, work.att_r, work.att_winv, work.contact_active,
         work.diag, work.lower, work.rhs, work.dinv, work.y, work.z, work.lam, state.node_pos, state.seg_quat,
         n_pos, n_quat, work.contact_push,
@@ -1275,6 +1287,7 @@ def rod_project_kernel(
     seg_tension_prev,
     contact_gap,
     contact_normal,
+    contact_obstacle_w,
     seg_rot,
     seg_s,
     seg_winv,
@@ -1309,8 +1322,8 @@ def rod_project_kernel(
         residual = rod_iteration_kernel(
             node_inv_mass, seg_rest_length, seg_inv_inertia, seg_stretch_compliance, bend_compliance, dt,
             tolerance, has_needle, needle_inv_mass, needle_inv_inertia_body, swage_body, seg_quat_start,
-            seg_tension_prev, contact_gap, contact_normal, seg_rot, seg_s, seg_winv, bend_b, seg_h, att_r,
-            att_winv, contact_active, diag, lower, rhs, dinv, y, z, lam, node_pos, seg_quat, needle_pos,
+            seg_tension_prev, contact_gap, contact_normal, contact_obstacle_w, seg_rot, seg_s, seg_winv, bend_b,
+            seg_h, att_r, att_winv, contact_active, diag, lower, rhs, dinv, y, z, lam, node_pos, seg_quat, needle_pos,
             needle_quat, contact_push,
         )  # fmt: skip
         if residual <= tolerance:

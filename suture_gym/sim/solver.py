@@ -81,14 +81,13 @@ from suture_gym.sim.coupling import (
     project_access_rows,
     project_needle_rows,
     project_suture_path_rows,
-    rod_iteration_with_contacts,
     strand_positions_kernel,
     suture_contact_rows,
 )
 from suture_gym.sim.model import Control, Model, State
 from suture_gym.sim.needle import needle_constraint_wrench, needle_predict, needle_update_velocities
 from suture_gym.sim.quat import quat_to_matrix
-from suture_gym.sim.rod import rod_predict
+from suture_gym.sim.rod import rod_iteration_kernel, rod_predict
 from suture_gym.sim.tissue import project_rollers, project_tets, tet_residual
 
 #: Phases timed by :meth:`Solver.step` when given a ``timings`` dict (seconds accumulated per phase).
@@ -487,8 +486,8 @@ class Solver:
         )
 
     def _project_suture(self, model: Model, state: State, dt: float) -> None:
-        """The suture's direct solve (:func:`~suture_gym.sim.coupling.rod_iteration_with_contacts`, the rod's
-        iteration with two-way contact rows), warm-started from ``state.suture_tension``, up to
+        """The suture's direct solve (:func:`~suture_gym.sim.rod.rod_iteration_kernel`, its contact rows made
+        two-way with the tissue), warm-started from ``state.suture_tension``, up to
         ``rod_iterations`` iterations until its residual is below ``rod_tolerance``.
 
         With coupling, nodes held on a path or passing an access point use their embedded inverse masses
@@ -501,7 +500,7 @@ class Solver:
         coupling = model.coupling
         cwork = model.scratch.coupling_work
         inv_mass = suture.node_inv_mass if coupling is None else cwork.suture_inv_mass
-        contact_w = np.zeros(suture.node_count) if coupling is None else cwork.suture_contact_w
+        contact_w = work.contact_obstacle_w if coupling is None else cwork.suture_contact_w
         work.lam[:] = 0.0
         work.lam[1:, 0] = state.suture_tension
         work.begin(rod_state)
@@ -521,7 +520,7 @@ class Solver:
                     state.tissue.particle_q, model.tissue.particle_inv_mass, rod_state.node_pos, work.contact_gap,
                     work.contact_normal, cwork.suture_contact_w,
                 )  # fmt: skip
-            residual = rod_iteration_with_contacts(
+            residual = rod_iteration_kernel(
                 inv_mass, suture.seg_rest_length, suture.seg_inv_inertia, suture.seg_stretch_compliance,
                 suture.bend_compliance, dt, self.rod_tolerance, *n_args, work.seg_quat_start, work.seg_tension_prev,
                 work.contact_gap, work.contact_normal, contact_w, work.seg_rot, work.seg_s, work.seg_winv,
