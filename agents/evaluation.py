@@ -19,7 +19,8 @@ import numpy as np
 
 @dataclass
 class Episode:
-    """One evaluated episode: return, length (env steps), success, mean |tip force| (N), final gap (m)."""
+    """One evaluated episode: return, length (env steps), success, mean |tip force| (N), final gap (m), and how
+    it ended (:func:`episode_end`)."""
 
     seed: int
     episode_return: float
@@ -29,6 +30,22 @@ class Episode:
     final_gap: float
     truncated: bool
     diverged: bool
+    end: str
+
+
+#: Why an episode ended, in the order :func:`episode_end` checks the last step's ``info``.
+ENDS = ("success", "diverged", "tear", "out_of_workspace", "missed", "time_limit", "terminated")
+
+
+def episode_end(info: dict, terminated: bool, truncated: bool) -> str:
+    """One of :data:`ENDS` for an episode whose last step returned ``info``, ``terminated``, ``truncated``:
+    the SutureGym flags first (``is_success``, ``diverged``, ``tear``, ``out_of_workspace``, ``missed``), then
+    ``time_limit`` for a truncation, else ``terminated`` (an env without those flags)."""
+    for name, key in (("success", "is_success"), ("diverged", "diverged"), ("tear", "tear"),
+                      ("out_of_workspace", "out_of_workspace"), ("missed", "missed")):
+        if info.get(key, False):
+            return name
+    return "time_limit" if truncated and not terminated else "terminated"
 
 
 def make_policy(policy: str, env: gym.Env, seed: int) -> Callable[[object], np.ndarray]:
@@ -124,7 +141,8 @@ def evaluate(
 
     Returns:
         ``{env_id, env_kwargs, policy, episodes, seed, success_rate, success_rate_stderr, mean_return,
-        std_return, mean_episode_length, mean_tip_force, mean_final_gap, diverged_episodes, per_episode}``.
+        std_return, mean_episode_length, mean_tip_force, mean_final_gap, diverged_episodes, end_counts,
+        per_episode}``; ``end_counts`` counts the episodes by how they ended (:data:`ENDS`, zeros left out).
     """
     import suture_gym  # noqa: F401  (registers the SutureGym ids)
 
@@ -162,6 +180,7 @@ def evaluate(
                 final_gap=float(info.get("wound_gap", math.nan)),
                 truncated=bool(truncated),
                 diverged=bool(info.get("diverged", False)),
+                end=episode_end(info, terminated, truncated),
             )
         )
         if records_path is not None:
@@ -184,6 +203,7 @@ def evaluate(
         "mean_tip_force": _nanmean([r.mean_tip_force for r in records]),
         "mean_final_gap": _nanmean([r.final_gap for r in records]),
         "diverged_episodes": int(sum(r.diverged for r in records)),
+        "end_counts": {name: count for name in ENDS if (count := sum(r.end == name for r in records))},
         "per_episode": [asdict(r) for r in records],
     }
 

@@ -10,7 +10,7 @@ import yaml
 
 pytest.importorskip("stable_baselines3")
 
-from agents.evaluation import evaluate  # noqa: E402
+from agents.evaluation import episode_end, evaluate  # noqa: E402
 from agents.hyperparams import load_hyperparams, resolve  # noqa: E402
 from agents.training import run_name, train  # noqa: E402
 
@@ -118,6 +118,21 @@ def test_evaluation_streams_each_episode_as_a_json_line(tmp_path):
     lines = [json.loads(line) for line in records.read_text().splitlines()]
     assert [r["seed"] for r in lines] == [11, 12, 13]
     assert [r["episode_return"] for r in lines] == [r["episode_return"] for r in summary["per_episode"]]
+    assert [r["end"] for r in lines] == ["time_limit"] * 3  # Pendulum only ever truncates
+    assert summary["end_counts"] == {"time_limit": 3}
+
+
+@pytest.mark.parametrize(("info", "terminated", "truncated", "end"), [
+    ({"is_success": True, "out_of_workspace": False}, True, False, "success"),
+    ({"is_success": False, "tear": True, "out_of_workspace": True}, True, False, "tear"),
+    ({"is_success": False, "out_of_workspace": True}, True, False, "out_of_workspace"),
+    ({"is_success": False, "missed": True}, True, False, "missed"),
+    ({"diverged": True}, False, True, "diverged"),
+    ({"is_success": False}, False, True, "time_limit"),
+    ({}, True, False, "terminated"),
+])
+def test_episode_end_names_why_an_episode_ended(info, terminated, truncated, end):
+    assert episode_end(info, terminated, truncated) == end
 
 
 def test_learning_curves_of_one_run_and_of_several(tmp_path):
