@@ -7,7 +7,10 @@ bookkeeping, the needle's grip pose) and acts as a surgeon does with a curved ne
    angle advancing ``turn_rate`` rad/s from the approach pose until the swage is ``clearance`` rad past the
    exit (:meth:`~suture_gym.envs.SutureEnv.scripted_action`, the env's wrench toward that pose).
 2. ``pull``: the holder moves along the stitch's pull direction at ``pull_speed`` m/s, orientation held
-   (:meth:`~suture_gym.envs.SutureEnv.action_toward`), until the task moves on to the next stitch.
+   (:meth:`~suture_gym.envs.SutureEnv.action_toward`), until the task moves on to the next stitch. A component
+   of the pull that would take the needle tip within ``WORKSPACE_INSET`` of the workspace's walls is dropped,
+   so a long pull (the running suture's last, which tightens every stitch) slides along the wall instead of
+   leaving the workspace.
 3. ``transit`` (next stitch of a running suture): the holder rises ``lift`` m above where it is, crosses to
    ``lift`` above the next stitch's approach pose, descends to it, and step 1 starts again.
 
@@ -29,12 +32,16 @@ from pathlib import Path
 import gymnasium as gym
 import numpy as np
 
-#: Tip-angle advance while turning, rad/s (the env's start-phase script turns at 1 rad/s).
-TURN_RATE = 1.0
+#: Tip-angle advance while turning, rad/s, per task (the env's start-phase script turns at 1 rad/s). The
+#: running suture turns faster: its three stitches (about 7 rad of turning each) must fit, with their transits
+#: and the final tightening pull, into WoundClosure's 25 s time limit.
+TURN_RATES = {"needle_insert": 1.0, "suture_throw": 1.0, "wound_closure": 2.0}
+#: Holder speed while pulling the thread, m/s, per task (WoundClosure's faster for the same reason).
+PULL_SPEEDS = {"needle_insert": 0.02, "suture_throw": 0.02, "wound_closure": 0.04}
 #: How far past the exit the swage is turned before pulling, rad.
 CLEARANCE = 0.3
-#: Holder speed while pulling the thread, m/s.
-PULL_SPEED = 0.02
+#: Closest approach (m) of the needle tip to the workspace's walls that a pull may make.
+WORKSPACE_INSET = 0.002
 #: Height of the transit between stitches above the approach pose, m.
 LIFT = 0.01
 #: Holder speed during the transit, m/s.
@@ -50,15 +57,18 @@ class ExpertPolicy:
         env: a SutureGym env (any wrappers; ``env.unwrapped`` must be a
             :class:`~suture_gym.envs.SutureEnv`). The observation passed to ``__call__`` is not read: the
             expert acts on the env's privileged state.
-        turn_rate: tip-angle advance while turning, rad/s (> 0).
-        pull_speed: holder speed while pulling the thread, m/s (> 0).
+        turn_rate: tip-angle advance while turning, rad/s (> 0); default the task's :data:`TURN_RATES`.
+        pull_speed: holder speed while pulling the thread, m/s (> 0); default the task's :data:`PULL_SPEEDS`.
     """
 
-    def __init__(self, env: gym.Env, turn_rate: float = TURN_RATE, pull_speed: float = PULL_SPEED) -> None:
+    def __init__(self, env: gym.Env, turn_rate: float | None = None, pull_speed: float | None = None) -> None:
         from suture_gym.envs import SutureEnv
 
         if not isinstance(env.unwrapped, SutureEnv):
             raise ValueError(f"env must be a SutureGym env, got {type(env.unwrapped).__name__}")
+        task = env.unwrapped.task.NAME
+        turn_rate = TURN_RATES[task] if turn_rate is None else turn_rate
+        pull_speed = PULL_SPEEDS[task] if pull_speed is None else pull_speed
         if not (math.isfinite(turn_rate) and turn_rate > 0.0):
             raise ValueError(f"turn_rate must be a positive rad/s, got {turn_rate}")
         if not (math.isfinite(pull_speed) and pull_speed > 0.0):
@@ -103,7 +113,18 @@ class ExpertPolicy:
             self.angle = min(turn_end, self.angle + self.turn_rate * sim.control_dt)
             return env.scripted_action(self.angle, self.stitch)
         grip, quat = sim.grip_pose()
-        return env.action_toward(grip + self.pull_speed * sim.control_dt * arc.pull_direction, quat)
+        direction = self._pull_direction(arc.pull_direction)
+        return env.action_toward(grip + self.pull_speed * sim.control_dt * direction, quat)
+
+    def _pull_direction(self, direction: np.ndarray) -> np.ndarray:
+        """``direction`` (3,) less its components toward workspace walls that the tip is within
+        :data:`WORKSPACE_INSET` of, rescaled to unit length (zero when nothing is left)."""
+        tip = self.env.sim.tip_position()
+        low, high = self.env.sim.workspace
+        kept = np.where(((direction < 0.0) & (tip - low < WORKSPACE_INSET))
+                        | ((direction > 0.0) & (high - tip < WORKSPACE_INSET)), 0.0, direction)
+        norm = float(np.linalg.norm(kept))
+        return kept / norm if norm > 0.0 else kept
 
     def _start_stitch(self, stitch: int) -> None:
         """Plan stitch ``stitch``: turn from the approach pose (the first one), else transit there first."""

@@ -15,7 +15,7 @@ pytest.importorskip("sb3_contrib")
 
 import suture_gym  # noqa: E402, F401  (registers the ids)
 from agents.evaluation import evaluate  # noqa: E402
-from agents.expert import ExpertPolicy, record  # noqa: E402
+from agents.expert import PULL_SPEEDS, TURN_RATES, WORKSPACE_INSET, ExpertPolicy, record  # noqa: E402
 from agents.hyperparams import load_hyperparams  # noqa: E402
 from agents.training import train  # noqa: E402
 
@@ -86,6 +86,52 @@ def test_expert_closes_wound():
     summary = evaluate("SutureGym/WoundClosure-v0", "expert", episodes=1, seed=0)
     assert summary["success_rate"] == 1.0
     assert summary["diverged_episodes"] == 0
+
+
+@pytest.mark.parametrize("env_id", ["SutureGym/NeedleInsert-v0", "SutureGym/WoundClosure-v0"])
+def test_expert_speeds_default_per_task_and_reject_bad_values(env_id):
+    env = gym.make(env_id)
+    task = env.unwrapped.task.NAME
+    expert = ExpertPolicy(env)
+    assert (expert.turn_rate, expert.pull_speed) == (TURN_RATES[task], PULL_SPEEDS[task])
+    assert ExpertPolicy(env, turn_rate=0.5).turn_rate == 0.5
+    with pytest.raises(ValueError, match="-1.0"):
+        ExpertPolicy(env, pull_speed=-1.0)
+    with pytest.raises(ValueError, match="nan"):
+        ExpertPolicy(env, turn_rate=float("nan"))
+
+
+def test_expert_pull_slides_along_workspace_walls(monkeypatch):
+    """Components of the pull toward a wall the tip is within WORKSPACE_INSET of are dropped; the rest keeps
+    unit length; a tip cornered against every wall the pull heads for is not pulled at all."""
+    env = gym.make("SutureGym/SutureThrow-v0")
+    env.reset(seed=0)
+    expert = ExpertPolicy(env)
+    sim = env.unwrapped.sim
+    low, high = sim.workspace
+    centre = 0.5 * (low + high)
+    direction = np.array([0.0, -2.0, 1.0]) / math.sqrt(5.0)
+    monkeypatch.setattr(sim, "tip_position", lambda: centre.copy())
+    np.testing.assert_allclose(expert._pull_direction(direction), direction)
+    near_top = centre.copy()
+    near_top[2] = high[2] - 0.5 * WORKSPACE_INSET
+    monkeypatch.setattr(sim, "tip_position", lambda: near_top)
+    np.testing.assert_allclose(expert._pull_direction(direction), [0.0, -1.0, 0.0], atol=1e-15)
+    away = np.array([0.0, -1.0, -1.0]) / math.sqrt(2.0)  # heading away from the top wall: kept whole
+    np.testing.assert_allclose(expert._pull_direction(away), away)
+    cornered = near_top.copy()
+    cornered[1] = low[1] + 0.5 * WORKSPACE_INSET
+    monkeypatch.setattr(sim, "tip_position", lambda: cornered)
+    np.testing.assert_array_equal(expert._pull_direction(direction), np.zeros(3))
+
+
+def test_tip_position_matches_observation():
+    env = gym.make("SutureGym/NeedleInsert-v0")
+    env.reset(seed=0)
+    for _ in range(5):
+        env.step(env.action_space.sample())
+    sim = env.unwrapped.sim
+    np.testing.assert_allclose(sim.tip_position(), sim.observables().tip_pos, rtol=0, atol=1e-15)
 
 
 def test_expert_rejects_foreign_env():

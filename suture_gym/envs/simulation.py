@@ -378,6 +378,11 @@ class Simulation:
         needle = self.state.needle
         return needle.body_pos + quat_rotate(needle.body_quat, self.model.needle.grip_pos_body), needle.body_quat.copy()
 
+    def tip_position(self) -> np.ndarray:
+        """``(3,)`` position of the needle tip in the current state, m."""
+        needle = self.state.needle
+        return needle.body_pos + quat_rotate(needle.body_quat, self.model.needle.tip_pos_body)
+
     def arc_grip_target(self, arc: PlannedArc, tip_angle: float) -> tuple[np.ndarray, np.ndarray]:
         """Grip pose ``(position (3,) m, orientation (4,))`` of the needle lying on ``arc`` with its tip at
         ``tip_angle`` (rad)."""
