@@ -503,6 +503,20 @@ def test_suture_extends_the_strand_coordinates():
     assert model.strand_friction[:nn].sum() == pytest.approx(model.params.needle_axial_friction * chord)
     status = CouplingState.empty(model).strand_status
     assert status[0] == NODE_HEAD and np.all(status[1:] == NODE_OUT)
+    assert model.knot_sigma == np.inf
+
+
+def test_knot_sits_knot_tail_from_the_free_end_and_bad_tails_are_named():
+    tissue = _block_tissue()
+    needle = NeedleModel.from_shape()
+    suture = RodModel.from_params(SutureParams(length=0.05, node_count=51))
+    model = CouplingModel.build(tissue, needle, suture, knot_tail=0.008)
+    assert model.knot_sigma == pytest.approx(model.strand_length - 0.008)
+    for bad in (-1e-3, 0.05, float("nan")):
+        with pytest.raises(ValueError, match="knot_tail"):
+            CouplingModel.build(tissue, needle, suture, knot_tail=bad)
+    with pytest.raises(ValueError, match="knot_tail"):
+        CouplingModel.build(tissue, needle, None, knot_tail=0.008)  # no thread to tie it in
 
 
 # --- contact frames, floors, the tip's anchor, tear bound, rigid supports -----------------------------------

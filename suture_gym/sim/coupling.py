@@ -39,10 +39,15 @@ Detection (once per substep, after the prediction; :func:`coupling_detect`)
 5. Exit: once the tip has been inside and is outside again, the point where the strand crosses the surface
    becomes the exit access point and the path's last node; the path closes. No exit through a rigid face;
    a needle whose front left the tissue without crossing its surface loses the open path.
-6. Release: an open path whose tip backed out (``sigma_entry <= 0`` and the tip more than ``l`` away from
+6. Stopper knot (optional, :meth:`CouplingModel.build`'s ``knot_tail``): the thread carries a knot at strand
+   coordinate ``knot_sigma``, too big to enter a hole. The oldest path's entry coordinate is bounded by it, so
+   once the knot reaches that entry the entry's node-access row holds the knot's strand piece at the access
+   point (to within half a strand segment): the thread no longer slides in there, and pulling it loads the
+   tissue at the entry (two-way, within ``tear_force``) as a tied first stitch does.
+7. Release: an open path whose tip backed out (``sigma_entry <= 0`` and the tip more than ``l`` away from
    the entry) and a closed path with no strand left inside (``sigma_exit >= sigma_entry``, e.g. the thread's
    free end pulled through) are removed.
-7. Constraint rows: HEAD inside an open path: none (it cuts). IN nodes: node-path (eq. 1) onto the matched
+8. Constraint rows: HEAD inside an open path: none (it cuts). IN nodes: node-path (eq. 1) onto the matched
    path's polyline (nodes of an open path ahead of its last path node: none, the tip region cuts freely).
    Other nodes within ``eps + contact_margin`` of the surface (the tip too while no path is open, by its
    anchor): a contact row (eq. 2), except the nodes of a strand piece through an access point. Needle nodes
@@ -52,7 +57,7 @@ Detection (once per substep, after the prediction; :func:`coupling_detect`)
    had. Every access point with the strand through it: node-access (eq. 3) on the strand piece of one
    segment's length centred on ``sigma_entry`` / ``sigma_exit`` (so the access point never sits at a piece's
    end, where eq. 3's gradient would drag the tissue along with the strand).
-8. Contact frames: every contact row holds its node against a fixed surface point (the closest point, the
+9. Contact frames: every contact row holds its node against a fixed surface point (the closest point, the
    anchor or the crossing) along a normal fixed for the substep, the smooth (vertex-normal blend) normal
    there (:func:`surface_normal`; the face normal of a rigid face): eq. 2 linearised at detection
    (:func:`node_surface_constraint`). Face normals flip between neighbouring faces as a node moves across
@@ -374,6 +379,8 @@ class CouplingModel:
             support (the base under the tissue, a clamp), which the strand can neither pierce nor leave through.
         surface: :class:`~suture_gym.sim.collision.TriangleSurface` of the tissue boundary.
         tet_bvh: :class:`~suture_gym.sim.bvh.BVH` over the tissue tets (path-node location).
+        knot_sigma: strand coordinate of the thread's stopper knot, m (``inf`` without one; module
+            docstring, detection step 6).
     """
 
     params: CouplingParams
@@ -386,6 +393,7 @@ class CouplingModel:
     tri_rigid: np.ndarray
     surface: TriangleSurface
     tet_bvh: BVH
+    knot_sigma: float = math.inf
 
     @property
     def strand_node_count(self) -> int:
@@ -398,13 +406,18 @@ class CouplingModel:
         return float(self.strand_sigma[-1])
 
     @classmethod
-    def build(cls, tissue, needle, suture=None, params: CouplingParams | None = None) -> CouplingModel:
+    def build(
+        cls, tissue, needle, suture=None, params: CouplingParams | None = None, knot_tail: float = 0.0
+    ) -> CouplingModel:
         """Coupling data for ``tissue`` (:class:`~suture_gym.sim.model.TissueModel`), ``needle``
         (:class:`~suture_gym.sim.needle.NeedleModel`) and optional ``suture``
-        (:class:`~suture_gym.sim.rod.RodModel`)."""
+        (:class:`~suture_gym.sim.rod.RodModel`). ``knot_tail`` (m, ``0 <= knot_tail <`` the suture's length):
+        a stopper knot this far from the suture's free end (0: no knot)."""
         params = CouplingParams() if params is None else params
         if not isinstance(params, CouplingParams):
             raise ValueError(f"params must be CouplingParams, got {type(params).__name__}")
+        if not (_is_real(knot_tail) and math.isfinite(knot_tail) and knot_tail >= 0.0):
+            raise ValueError(f"knot_tail must be a finite number >= 0 m, got {knot_tail!r}")
         needle_nodes = np.asarray(needle.node_pos_body, dtype=np.float64)
         nn = needle_nodes.shape[0]
         if nn < 2:
@@ -429,6 +442,12 @@ class CouplingModel:
         if not np.all(np.take_along_axis(tets[tissue.tri_tet], local.astype(np.int64), axis=1) == tri):
             raise ValueError("tissue.tri_tet must name a tet containing each boundary triangle")
         rest = tissue.particle_rest_q
+        knot_sigma = math.inf
+        if knot_tail > 0.0:
+            suture_length = float(seg_length[nn - 1 :].sum())
+            if not knot_tail < suture_length:
+                raise ValueError(f"knot_tail ({knot_tail} m) must be shorter than the suture ({suture_length:.4g} m)")
+            knot_sigma = float(sigma[-1] - knot_tail)
         rigid = np.all(tissue.particle_inv_mass[tri] == 0.0, axis=1)
         for array in (sigma, seg_length, friction, local, rigid):
             array.flags.writeable = False
@@ -443,6 +462,7 @@ class CouplingModel:
             tri_rigid=rigid,
             surface=build_triangle_surface(tri, rest),
             tet_bvh=build_bvh(tets, rest),
+            knot_sigma=knot_sigma,
         )
 
 
@@ -1510,7 +1530,7 @@ def coupling_detect(
     window = params.track_window
     total = model.strand_length
     for k in range(state.path_count - 1, -1, -1):  # newest (front of the strand) first
-        upper = state.path_sigma_exit[k - 1] if k > 0 else total
+        upper = state.path_sigma_exit[k - 1] if k > 0 else min(total, model.knot_sigma)
         newer_entry = state.path_sigma_entry[k + 1] if k + 1 < state.path_count else 0.0
         if not state.path_open[k]:
             b = access_point(model, tissue_q, state.path_exit_tri[k], state.path_exit_bary[k])

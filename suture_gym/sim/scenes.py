@@ -337,6 +337,7 @@ def add_strands(
     suture_params: SutureParams | None = None,
     suture_direction=(0.0, -1.0, 0.0),
     suture_tail_pinned: bool = False,
+    suture_knot_tail: float = 0.0,
     coupling_params: CouplingParams | None = None,
 ) -> Scene:
     """The tissue ``scene`` with a needle, an optional suture on its swage and their coupling with the tissue.
@@ -348,7 +349,9 @@ def add_strands(
         gravity_compensation: the haptic device carries the needle's weight.
         suture_params: :class:`~suture_gym.sim.rod.SutureParams`, or None for a needle alone.
         suture_direction: (3,) the suture lies straight from the swage along this direction at rest.
-        suture_tail_pinned: hold the suture's free end where it starts (a knot or an assistant's forceps).
+        suture_tail_pinned: hold the suture's free end where it starts (an assistant's forceps).
+        suture_knot_tail: m; a stopper knot this far from the suture's free end, which no hole lets through
+            (0: none; :meth:`~suture_gym.sim.coupling.CouplingModel.build`).
         coupling_params: :class:`~suture_gym.sim.coupling.CouplingParams` (default parameters if None).
 
     Returns:
@@ -366,7 +369,9 @@ def add_strands(
         suture_state = RodState.straight(suture, swage, suture_direction)
     coupling = None
     if tissue is not None:
-        coupling = CouplingModel.build(tissue, needle, suture, coupling_params or CouplingParams())
+        coupling = CouplingModel.build(
+            tissue, needle, suture, coupling_params or CouplingParams(), knot_tail=suture_knot_tail
+        )
     model = Model(tissue=tissue, needle=needle, suture=suture, coupling=coupling, gravity=scene.model.gravity)
     state = State.initial(model, needle=needle_state, suture=suture_state)
     if tissue is not None:
@@ -385,6 +390,7 @@ def add_strands(
             "inextensible": suture_params.inextensible,
             "direction": [float(v) for v in suture_direction],
             "tail_pinned": suture_tail_pinned,
+            "knot_tail_m": suture_knot_tail,
         },
         "coupling": None if coupling is None else asdict(coupling.params),
     }
@@ -401,6 +407,7 @@ def two_bar_suturing(
     suture_params: SutureParams | None = None,
     suture_direction=(0.0, -1.0, 0.15),
     suture_tail_pinned: bool = True,
+    suture_knot_tail: float = 0.0,
     coupling_params: CouplingParams | None = None,
 ) -> Scene:
     """:func:`two_bar_wound` (on its rigid base) ready to be sutured across the wound.
@@ -410,7 +417,8 @@ def two_bar_suturing(
     gap, turned by ``angle`` (0: tip on bar A's side, 2 mm above it, pointing down; see
     :data:`WOUND_NEEDLE_QUAT`). Turning it about +x through about 2 pi takes the needle through bar A, across
     the gap, through bar B and out. The suture (default 8 cm, 81 nodes) starts straight from the swage along
-    ``suture_direction`` with its tail held.
+    ``suture_direction`` with its tail held (``suture_tail_pinned``) and/or a stopper knot ``suture_knot_tail``
+    m from its free end (:func:`add_strands`).
 
     Defaults for the 1 kPa paper tissue: ``puncture_force = 0.015 N`` and ``needle_axial_friction = 0.5 N/m``
     (1 N would indent this tissue by centimetres before piercing it; see :class:`CouplingParams`; at 0.05 N
@@ -429,6 +437,7 @@ def two_bar_suturing(
         suture_params=suture_params or SutureParams(length=0.08, node_count=81),
         suture_direction=suture_direction,
         suture_tail_pinned=suture_tail_pinned,
+        suture_knot_tail=suture_knot_tail,
         coupling_params=coupling_params or CouplingParams(puncture_force=0.015, needle_axial_friction=0.5),
     )
     scene.settings["scene"] = "two_bar_suturing"
