@@ -425,6 +425,8 @@ def test_every_yaml_config_loads():
         ({"action": {"mode": "teleport"}}, "action.mode"),
         ({"randomization": {"youngs_modulus_scale": [2.0, 1.0]}}, "randomization.youngs_modulus_scale"),
         ({"tissue": 3}, "tissue"),
+        ({"suture": {"knot_tail": -0.001}}, "suture.knot_tail"),
+        ({"suture": {"length": 0.03, "knot_tail": 0.03}}, "suture.knot_tail"),
     ],
 )
 def test_bad_config_values_are_named(overrides, match):

@@ -171,12 +171,14 @@ class SutureConfig(_Section):
     length: float = 0.03  # m
     node_count: int = 0  # nodes along the thread (0: needle only)
     radius: float = 1.0e-4  # m (3-0 suture)
+    knot_tail: float = 0.0  # m of thread beyond a stopper knot tied near its free end (0: no knot)
 
     def validate(self, path: str) -> None:
         _real(f"{path}.length", self.length, low=0.0, strict_low=True)
         if self.node_count != 0:
             _count(f"{path}.node_count", self.node_count, 2)
         _real(f"{path}.radius", self.radius, low=0.0, strict_low=True)
+        _real(f"{path}.knot_tail", self.knot_tail, low=0.0, high=self.length, strict_high=True)
 
 
 @dataclass(frozen=True)
@@ -436,7 +438,7 @@ _TASK_DEFAULTS: dict[str, dict] = {
     "wound_closure": {
         "task": "wound_closure",
         "scene": {"kind": "wound", "size": (0.03, 0.012, 0.008)},
-        "suture": {"node_count": 61, "length": 0.06},
+        "suture": {"node_count": 86, "length": 0.085, "knot_tail": 0.008},
         "plan": {"stitches": 3},
         "observation": {"suture_samples": 4},
         "reward": {"failure": 30.0},

@@ -8,9 +8,10 @@ Scene (all SI, gravity along -z, the tissue on a rigid base at ``z = 0``):
 * the curved needle (:mod:`suture_gym.sim.needle`), its plane ``x = const`` across the pad or the wound, placed
   with its tip on the first planned circle ``plan.start_angle`` before the entry point;
 * the suture (:mod:`suture_gym.sim.rod`) on the swage, if ``suture.node_count > 0``: lying straight along
-  ``(0, -1, 1)`` from the swage (up and back, clear of the needle), or, for ``wound_closure``, anchored by its
-  tail just outside the first entry point (the knot of a running suture) and laid from the swage up and back
-  (along ``(0, -1, 1)``) and down to it in two straight legs;
+  ``(0, -1, 1)`` from the swage (up and back, clear of the needle), or, for ``wound_closure``, laid from the
+  swage up and back (along ``(0, -1, 1)``) and down to a free end just outside the first entry point in two
+  straight legs; ``suture.knot_tail`` from that end a stopper knot (wound_closure's running suture) stops the
+  thread at the first entry, so pulling it draws the wound together;
 * the coupling of needle and suture with the tissue (:mod:`suture_gym.sim.coupling`).
 
 One env step is ``solver.substeps`` substeps of ``solver.dt``. Between substeps the facade records the events
@@ -67,8 +68,8 @@ SCRIPT_CLEARANCE = 0.3
 SCRIPT_PULL_FORCE = 0.03
 SCRIPT_PULL_DAMPING = 2.0
 SCRIPT_PULL_TIME = 3.0
-#: Distance outside the first entry at which the wound-closure thread is anchored, m.
-ANCHOR_OFFSET = 8.0e-3
+#: Distance outside the first entry at which the wound-closure thread's free end starts, m.
+TAIL_OFFSET = 8.0e-3
 
 
 def _quat_from_matrix(r: np.ndarray) -> np.ndarray:
@@ -283,12 +284,11 @@ class Simulation:
             suture = RodModel.from_params(self.suture_params)
             swage = pos + quat_rotate(quat, needle.swage_pos_body)
             if cfg.task == "wound_closure":
-                suture = suture.with_pins([suture.node_count - 1])
-                anchor = arcs[0].entry + np.array([0.0, -ANCHOR_OFFSET, 0.25 * ANCHOR_OFFSET])
-                suture_state = _tent_rod(suture, swage, anchor, np.array([0.0, -1.0, 1.0]))
+                tail = arcs[0].entry + np.array([0.0, -TAIL_OFFSET, 0.25 * TAIL_OFFSET])
+                suture_state = _tent_rod(suture, swage, tail, np.array([0.0, -1.0, 1.0]))
             else:
                 suture_state = RodState.straight(suture, swage, (0.0, -1.0, 1.0))
-        coupling = CouplingModel.build(tissue, needle, suture, coupling_params)
+        coupling = CouplingModel.build(tissue, needle, suture, coupling_params, knot_tail=cfg.suture.knot_tail)
         model = Model(tissue=tissue, needle=needle, suture=suture, coupling=coupling,
                       gravity=(0.0, 0.0, -STANDARD_GRAVITY))
         initial = State.initial(model, needle=needle_state, suture=suture_state)
@@ -559,7 +559,7 @@ def _tent_rod(model: RodModel, start: np.ndarray, end: np.ndarray, direction: np
     length = float(model.seg_rest_length.sum())
     distance = float(np.linalg.norm(end - start))
     if not distance < length:
-        raise ValueError(f"the thread ({length} m) is too short to reach its anchor {distance:.4g} m away")
+        raise ValueError(f"the thread ({length} m) is too short to reach its end point {distance:.4g} m away")
     mid = 0.5 * (start + end)
     d = direction / np.linalg.norm(direction)
 

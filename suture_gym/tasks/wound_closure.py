@@ -9,8 +9,8 @@ from suture_gym.tasks.base import Observables, Task
 
 class WoundClosure(Task):
     """A running suture: ``plan.stitches`` stitches along the wound, each pulled through by
-    ``plan.thread_target`` before the next becomes current; the thread's tail is anchored (a knot), so pulling
-    it draws the wound edges together.
+    ``plan.thread_target`` before the next becomes current; a stopper knot near the thread's tail
+    (``suture.knot_tail``) holds it at the first entry, so pulling it draws the wound edges together.
 
     Success: the mean wound gap at most ``plan.closure_target`` times its rest value. Start phases:
     ``approach`` and ``first_bite`` (the first stitch made and its thread pulled through).
