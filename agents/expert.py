@@ -6,7 +6,8 @@ bookkeeping, the needle's grip pose) and acts as a surgeon does with a curved ne
 1. ``turn``: the needle is turned about its own centre along the current stitch's planned circle, the tip
    angle advancing ``turn_rate`` rad/s from the approach pose until the swage is ``clearance`` rad past the
    exit (:meth:`~suture_gym.envs.SutureEnv.scripted_action`, the env's wrench toward that pose).
-2. ``pull``: the holder moves along the stitch's pull direction at ``pull_speed`` m/s, orientation held
+2. ``pull``: the holder moves along the stitch's pull direction (the last stitch of a running suture's leans
+   ahead, along the suture, :meth:`ExpertPolicy._planned_pull`) at ``pull_speed`` m/s, orientation held
    (:meth:`~suture_gym.envs.SutureEnv.action_toward`), until the task moves on to the next stitch. A component
    of the pull that would take the needle tip within ``WORKSPACE_INSET`` of the workspace's walls is dropped,
    so a long pull (the running suture's last, which tightens every stitch) slides along the wall instead of
@@ -113,8 +114,20 @@ class ExpertPolicy:
             self.angle = min(turn_end, self.angle + self.turn_rate * sim.control_dt)
             return env.scripted_action(self.angle, self.stitch)
         grip, quat = sim.grip_pose()
-        direction = self._pull_direction(arc.pull_direction)
+        direction = self._pull_direction(self._planned_pull(self.stitch))
         return env.action_toward(grip + self.pull_speed * sim.control_dt * direction, quat)
+
+    def _planned_pull(self, stitch: int) -> np.ndarray:
+        """Unit direction (3,) in which to pull stitch ``stitch``'s thread: the arc's
+        :attr:`~suture_gym.tasks.PlannedArc.pull_direction`; the last stitch of a running suture adds the
+        direction in which the suture advanced (from the previous stitch's centre to this one's), which leads
+        the long tightening pull away from the stitches into the free workspace beyond them."""
+        arcs = self.env.sim.arcs
+        direction = arcs[stitch].pull_direction
+        if stitch > 0 and stitch == len(arcs) - 1:
+            advance = arcs[stitch].center - arcs[stitch - 1].center
+            direction = direction + advance / np.linalg.norm(advance)
+        return direction / np.linalg.norm(direction)
 
     def _pull_direction(self, direction: np.ndarray) -> np.ndarray:
         """``direction`` (3,) less its components toward workspace walls that the tip is within

@@ -125,6 +125,22 @@ def test_expert_pull_slides_along_workspace_walls(monkeypatch):
     np.testing.assert_array_equal(expert._pull_direction(direction), np.zeros(3))
 
 
+def test_expert_leans_the_running_sutures_last_pull_ahead_along_the_suture():
+    env = gym.make("SutureGym/WoundClosure-v0")
+    env.reset(seed=0)
+    expert = ExpertPolicy(env)
+    arcs = env.unwrapped.sim.arcs
+    for k in range(len(arcs) - 1):
+        np.testing.assert_allclose(expert._planned_pull(k), arcs[k].pull_direction)
+    last = expert._planned_pull(len(arcs) - 1)
+    advance = (arcs[-1].center - arcs[-2].center) / np.linalg.norm(arcs[-1].center - arcs[-2].center)
+    assert np.linalg.norm(last) == pytest.approx(1.0)
+    assert last @ advance > 0.5 and last @ arcs[-1].pull_direction > 0.5  # ahead, and still back and up
+    single = gym.make("SutureGym/SutureThrow-v0")
+    single.reset(seed=0)
+    np.testing.assert_allclose(ExpertPolicy(single)._planned_pull(0), single.unwrapped.sim.arcs[0].pull_direction)
+
+
 def test_tip_position_matches_observation():
     env = gym.make("SutureGym/NeedleInsert-v0")
     env.reset(seed=0)
