@@ -1,6 +1,6 @@
-"""Record a short video of each task, rendered by the env (``render_mode="rgb_array"``), driven by the scripted
-surgeon (:meth:`suture_gym.envs.SutureEnv.scripted_action`): the needle turned about its own centre along the
-planned arcs, then pulled to draw the thread through.
+"""Record a video of each task, rendered by the env (``render_mode="rgb_array"``), driven by the scripted
+expert (:class:`agents.expert.ExpertPolicy`, the policy whose success rates the README reports): the needle
+turned about its own centre along the planned arcs, then pulled to draw the thread through.
 
 Usage::
 
@@ -9,7 +9,8 @@ Usage::
 
 Prints one JSON line per video: path, frames, simulated seconds, size in bytes, success and the episode's
 return. Frames are taken every ``--every`` env steps; the video plays at real time (fps = 1 / (every * env
-step)), so the default 5 ms env step and ``--every 8`` give 25 fps.
+step)), so the default 5 ms env step and ``--every 8`` give 25 fps. The episode runs until it ends or
+``--seconds`` of simulated time have passed.
 """
 
 from __future__ import annotations
@@ -25,45 +26,27 @@ from _common import ROOT, configure
 configure(threads=1)
 
 import gymnasium as gym  # noqa: E402
-import numpy as np  # noqa: E402
 
 import suture_gym.envs  # noqa: E402, F401  (registers the ids)
+from agents.expert import ExpertPolicy  # noqa: E402
 from suture_gym.envs import ENV_IDS  # noqa: E402
 from suture_gym.render import write_video  # noqa: E402
 
-#: Tip-angle advance of the scripted surgeon per task, rad/s (a thread anchored by its tail, as in wound_closure,
-#: needs the slower turn to stay stable; see the report on the coupling's robustness).
-TURN_RATE = {"needle_insert": 2.0, "suture_throw": 1.0, "wound_closure": 1.0}
 #: Frames the last image is held at the end of a video.
 HOLD_FRAMES = 12
-#: Pull speed once the needle is out, m/s.
-PULL_SPEED = 0.02
 
 
-def scripted_episode(env: gym.Env, seconds: float, every: int, seed: int):
-    """Yield frames of one scripted episode (and finally a dict summary through ``StopIteration.value``)."""
-    unwrapped = env.unwrapped
-    sim = unwrapped.sim
-    env.reset(seed=seed)
-    total, success, steps = 0.0, False, int(math.ceil(seconds / sim.control_dt))
-    stitch = 0
-    angle = sim.arcs[0].entry_angle - unwrapped.config.plan.start_angle
-    needle_arc = sim.model.needle.shape.arc_angle
+def expert_episode(env: gym.Env, seconds: float, every: int, seed: int):
+    """Yield frames of one expert episode (and finally a dict summary through ``StopIteration.value``)."""
+    obs, _ = env.reset(seed=seed)
+    expert = ExpertPolicy(env)
+    total, success = 0.0, False
+    steps = int(math.ceil(seconds / env.unwrapped.sim.control_dt))
     k = 0
     for k in range(steps):
         if k % every == 0:
             yield env.render()
-        state = unwrapped.task.state
-        if state.stitch != stitch:  # next stitch: start again before its entry
-            stitch = state.stitch
-            angle = sim.arcs[stitch].entry_angle - unwrapped.config.plan.start_angle
-        arc = sim.arcs[stitch]
-        if angle < arc.exit_angle + needle_arc + 0.3:
-            angle += TURN_RATE[unwrapped.config.task] * sim.control_dt
-            action = unwrapped.scripted_action(angle)
-        else:
-            action = _pull_action(unwrapped, arc)
-        _, reward, terminated, truncated, info = env.step(action)
+        obs, reward, terminated, truncated, info = env.step(expert(obs))
         total += float(reward)
         success = success or bool(info["is_success"])
         if terminated or truncated:
@@ -71,33 +54,24 @@ def scripted_episode(env: gym.Env, seconds: float, every: int, seed: int):
     last = env.render()
     for _ in range(HOLD_FRAMES):
         yield last
-    return {"steps": k + 1, "return": total, "success": success}
-
-
-def _pull_action(unwrapped, arc) -> np.ndarray:
-    """Hold the needle's orientation and move the grip along the stitch's pull direction (back across the wound
-    and up); the action's force limit bounds the thread tension."""
-    grip, quat = unwrapped.sim.grip_pose()
-    return unwrapped.action_toward(grip + PULL_SPEED * unwrapped.sim.control_dt * arc.pull_direction, quat)
+    return {"steps": k + 1, "seconds": (k + 1) * env.unwrapped.sim.control_dt, "return": total, "success": success}
 
 
 def main(argv: list[str] | None = None) -> int:
     parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     parser.add_argument("--env", nargs="+", default=list(ENV_IDS), help="env ids to record")
     parser.add_argument("--out", default=str(ROOT / "docs" / "media"), help="output folder")
-    parser.add_argument("--seconds", type=float, default=None, help="simulated seconds (default per task)")
+    parser.add_argument("--seconds", type=float, default=30.0, help="longest simulated time, s")
     parser.add_argument("--every", type=int, default=8, help="env steps per video frame")
     parser.add_argument("--seed", type=int, default=0)
     args = parser.parse_args(argv)
     out = Path(args.out)
     out.mkdir(parents=True, exist_ok=True)
-    default_seconds = {"needle_insert": 1.5, "suture_throw": 7.5, "wound_closure": 25.0}
     for env_id in args.env:
         env = gym.make(env_id, render_mode="rgb_array")
         task = env.unwrapped.config.task
-        seconds = args.seconds or default_seconds[task]
         path = out / f"{task}.mp4"
-        frames = scripted_episode(env, seconds, args.every, args.seed)
+        frames = expert_episode(env, args.seconds, args.every, args.seed)
         summary = {}
 
         def collect(gen=frames, store=summary):

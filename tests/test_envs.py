@@ -288,3 +288,19 @@ def test_yaml_config_reaches_the_env():
     assert env.config.observation.privileged and env.config.randomization.youngs_modulus_scale != (1.0, 1.0)
     with pytest.raises(ValueError, match="'reward.bonus'"):
         gym.make("SutureGym/NeedleInsert-v0", config={"reward": {"bonus": 1.0}})
+
+
+def test_record_video_script_films_the_expert(tmp_path):
+    pytest.importorskip("imageio_ffmpeg")
+    import json
+    import subprocess
+    import sys
+
+    script = Path(__file__).resolve().parents[1] / "scripts" / "record_video.py"
+    done = subprocess.run([sys.executable, str(script), "--env", "SutureGym/NeedleInsert-v0", "--out", str(tmp_path),
+                           "--seconds", "0.1", "--every", "5"], capture_output=True, text=True, check=True, timeout=600)
+    line = json.loads(done.stdout.strip().splitlines()[-1])
+    video = tmp_path / "needle_insert.mp4"
+    assert line["path"] == str(video) and video.stat().st_size == line["bytes"] > 0
+    assert line["steps"] == 20 and line["frames"] == 4 + 12  # a frame every 5 of 20 steps, then the last held
+    assert line["success"] is False  # 0.1 s is far too short to stitch
