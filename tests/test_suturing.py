@@ -9,8 +9,8 @@ stitch and 10 mm of the top.
 import numpy as np
 import pytest
 
-from suture_gym.measure.interaction import StitchController, run_stitch
-from suture_gym.sim.coupling import NODE_IN, ROW_PATH, access_point
+from suture_gym.measure.interaction import StitchController, knotted_stitch, run_stitch
+from suture_gym.sim.coupling import NODE_IN, ROW_PATH
 from suture_gym.sim.quat import quat_to_matrix
 from suture_gym.sim.rod import segment_strain
 from suture_gym.sim.scenes import two_bar_suturing, wound_gap
@@ -84,48 +84,13 @@ def test_thread_stays_inextensible_and_attached(stitched):
     assert np.linalg.norm(state.suture.node_pos[0] - swage) < 1e-5
 
 
-KNOT_TAIL = 0.066  # m: puts the knot 14 mm behind the swage, which reaches the first entry during the turn
-
-
-@pytest.fixture(scope="module")
-def knotted():
-    """The same stitch with a free thread tail and a stopper knot instead of a held tail."""
-    scene = two_bar_suturing(suture_tail_pinned=False, suture_knot_tail=KNOT_TAIL)
-    controller = StitchController(scene.model.needle, np.array(scene.settings["arc_center_m"]))
-    log = []
-
-    def probe(s, t):
-        c = s.state.coupling
-        swage = s.state.needle.body_pos + quat_to_matrix(s.state.needle.body_quat) @ s.model.needle.swage_pos_body
-        log.append((t, c.path_sigma_entry[0] if c.path_count else np.nan, swage.copy()))
-
-    run = run_stitch(scene, controller, controller.turn_time + PULL_TIME, Solver(), probe)
-    return scene, run, log
-
-
-def test_a_stopper_knot_stops_the_thread_at_the_first_entry_and_the_pull_closes_the_wound(knotted):
-    scene, run, log = knotted
-    coupling, state = scene.model.coupling, scene.state.coupling
-    knot = coupling.knot_sigma
-    t, sigma_entry, swage = np.array([r[0] for r in log]), np.array([r[1] for r in log]), np.array([r[2] for r in log])
-    assert np.nanmax(sigma_entry) <= knot + 1e-12  # the entry's coordinate never passes the knot
-    arrived = int(np.argmax(sigma_entry >= knot - 1e-4))
-    assert sigma_entry[arrived] >= knot - 1e-4 and t[arrived] < t[-1] - 2.0  # reached with 2 s of work left
-    assert np.all(sigma_entry[arrived:] >= knot - 5e-4)  # and held there (within half a segment)
-    assert np.linalg.norm(swage[-1] - swage[arrived]) > 5e-3  # while the needle went on pulling
-    # the tail beyond the knot stayed outside the tissue, and the knot sits at the entry
-    nn = coupling.needle_node_count
-    tail = coupling.strand_sigma > knot + 1e-3
-    assert np.all(state.strand_status[tail] != NODE_IN) and np.all(state.strand_sdist[tail] > 0.0)
-    entry = access_point(coupling, scene.state.tissue.particle_q, state.path_entry_tri[0], state.path_entry_bary[0])
-    strand = np.vstack([scene.state.needle.body_pos + (quat_to_matrix(scene.state.needle.body_quat)
-                                                       @ scene.model.needle.node_pos_body.T).T,
-                        scene.state.suture.node_pos[1:]])
-    knot_point = np.array([np.interp(knot, coupling.strand_sigma, strand[:, i]) for i in range(3)])
-    # node-access holds a strand piece one segment long (1 mm) centred on the knot: the knot lies within half a
-    # segment of the entry, plus the constraint's residual
-    assert np.linalg.norm(knot_point - entry) < 0.6e-3
-    assert nn < np.searchsorted(coupling.strand_sigma, knot)  # (the knot is on the suture, not the needle)
+def test_a_stopper_knot_stops_the_thread_at_the_first_entry_and_the_pull_closes_the_wound():
+    run = knotted_stitch()
+    assert run["entry_sigma_max_m"] <= run["knot_sigma_m"] + 1e-12  # the entry's coordinate never passes the knot
+    assert run["arrival_s"] < run["duration_s"] - 2.0  # the knot arrived with 2 s of turning and pulling left
+    assert run["swage_travel_after_arrival_m"] > 5e-3  # and the needle went on pulling
+    assert run["knot_entry_distance_max_m"] < 0.6e-3  # the knot stayed at the entry (half a 1 mm segment)
+    assert run["tail_depth_max_m"] < 0.0  # the tail beyond the knot never entered the tissue
     # tension against the knot closes the wound, without tearing the tissue
-    assert not run["diverged"] and not state.damaged
+    assert not run["diverged"] and not run["damaged"]
     assert run["gap_final_m"] < 0.25 * run["gap_rest_m"]
