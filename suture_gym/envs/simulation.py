@@ -40,7 +40,14 @@ from suture_gym.render.scene import RenderFrame
 from suture_gym.sim.coupling import CouplingModel, CouplingParams, access_point
 from suture_gym.sim.mesh import box_tet_grid
 from suture_gym.sim.model import Control, Model, State, TissueMaterial, TissueModel
-from suture_gym.sim.needle import NeedleModel, NeedleShape, NeedleState, VirtualCoupling, needle_point_velocity
+from suture_gym.sim.needle import (
+    NeedleModel,
+    NeedleShape,
+    NeedleState,
+    VirtualCoupling,
+    needle_point_velocity,
+    needle_point_world,
+)
 from suture_gym.sim.quat import (
     quat_conj,
     quat_from_rotation_vector,
@@ -380,8 +387,7 @@ class Simulation:
 
     def tip_position(self) -> np.ndarray:
         """``(3,)`` position of the needle tip in the current state, m."""
-        needle = self.state.needle
-        return needle.body_pos + quat_rotate(needle.body_quat, self.model.needle.tip_pos_body)
+        return needle_point_world(self.model.needle, self.state.needle, self.model.needle.tip_pos_body)
 
     def arc_grip_target(self, arc: PlannedArc, tip_angle: float) -> tuple[np.ndarray, np.ndarray]:
         """Grip pose ``(position (3,) m, orientation (4,))`` of the needle lying on ``arc`` with its tip at

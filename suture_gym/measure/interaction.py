@@ -319,12 +319,9 @@ def knotted_stitch() -> dict:
     knot = coupling.knot_sigma
     sigma = coupling.strand_sigma
     tail = sigma > knot + scene.model.suture.seg_rest_length.max()
-    needle = scene.model.needle
+    swage = coupling.needle_node_count - 1  # the strand node on the swage
     log = {"entry_max": -math.inf, "arrived": math.nan, "swage_at_arrival": None, "distance_max": 0.0,
            "tail_depth_max": -math.inf}
-
-    def swage(state: State) -> np.ndarray:
-        return state.needle.body_pos + quat_to_matrix(state.needle.body_quat) @ needle.swage_pos_body
 
     def probe(sc: Scene, t: float) -> None:
         c = sc.state.coupling
@@ -335,7 +332,7 @@ def knotted_stitch() -> dict:
             return
         log["entry_max"] = max(log["entry_max"], float(c.path_sigma_entry[0]))
         if log["swage_at_arrival"] is None and c.path_sigma_entry[0] >= knot - KNOT_ARRIVAL:
-            log["arrived"], log["swage_at_arrival"] = t, swage(sc.state)
+            log["arrived"], log["swage_at_arrival"] = t, q[swage].copy()
         if log["swage_at_arrival"] is not None:
             point = np.array([np.interp(knot, sigma, q[:, i]) for i in range(3)])
             entry = access_point(coupling, sc.state.tissue.particle_q, c.path_entry_tri[0], c.path_entry_bary[0])
@@ -350,7 +347,7 @@ def knotted_stitch() -> dict:
         "entry_sigma_max_m": log["entry_max"],
         "arrival_s": log["arrived"],
         "duration_s": duration,
-        "swage_travel_after_arrival_m": float(np.linalg.norm(swage(scene.state) - log["swage_at_arrival"]))
+        "swage_travel_after_arrival_m": float(np.linalg.norm(strand_now(scene)[swage] - log["swage_at_arrival"]))
         if arrived
         else 0.0,
         "knot_entry_distance_max_m": log["distance_max"] if arrived else math.inf,
