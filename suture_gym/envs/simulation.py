@@ -37,9 +37,8 @@ import numpy as np
 from suture_gym.envs.config import EnvConfig
 from suture_gym.envs.randomization import EpisodeParams, nominal_params
 from suture_gym.render.scene import RenderFrame
-from suture_gym.sim.coupling import CouplingModel, CouplingParams, access_point
-from suture_gym.sim.mesh import box_tet_grid
-from suture_gym.sim.model import Control, Model, State, TissueMaterial, TissueModel
+from suture_gym.sim.coupling import CouplingParams, access_point
+from suture_gym.sim.model import Control, Model, State, TissueMaterial
 from suture_gym.sim.needle import (
     NeedleModel,
     NeedleShape,
@@ -59,7 +58,14 @@ from suture_gym.sim.quat import (
     quat_to_matrix,
 )
 from suture_gym.sim.rod import RodModel, RodState, SutureParams
-from suture_gym.sim.scenes import STANDARD_GRAVITY, two_bar_wound
+from suture_gym.sim.scenes import (
+    STANDARD_GRAVITY,
+    Scene,
+    assemble,
+    needle_circle_pose,
+    suturing_pad,
+    two_bar_wound,
+)
 from suture_gym.sim.solver import Solver
 from suture_gym.tasks import Observables, PlannedArc, plan_stitches
 
@@ -77,42 +83,6 @@ SCRIPT_PULL_DAMPING = 2.0
 SCRIPT_PULL_TIME = 3.0
 #: Distance outside the first entry at which the wound-closure thread's free end starts, m.
 TAIL_OFFSET = 8.0e-3
-
-
-def _quat_from_matrix(r: np.ndarray) -> np.ndarray:
-    """Unit quaternion (w, x, y, z) of the rotation matrix ``r`` (3, 3), with ``w >= 0``."""
-    m = np.asarray(r, dtype=np.float64)
-    trace = m[0, 0] + m[1, 1] + m[2, 2]
-    if trace > 0.0:
-        s = 2.0 * math.sqrt(1.0 + trace)
-        q = np.array([0.25 * s, (m[2, 1] - m[1, 2]) / s, (m[0, 2] - m[2, 0]) / s, (m[1, 0] - m[0, 1]) / s])
-    else:
-        i = int(np.argmax([m[0, 0], m[1, 1], m[2, 2]]))
-        j, k = (i + 1) % 3, (i + 2) % 3
-        s = 2.0 * math.sqrt(1.0 + m[i, i] - m[j, j] - m[k, k])
-        q = np.zeros(4)
-        q[0] = (m[k, j] - m[j, k]) / s
-        q[1 + i] = 0.25 * s
-        q[1 + j] = (m[j, i] + m[i, j]) / s
-        q[1 + k] = (m[k, i] + m[i, k]) / s
-    q /= np.linalg.norm(q)
-    return q if q[0] >= 0.0 else -q
-
-
-def needle_pose_on_arc(needle: NeedleModel, arc: PlannedArc, tip_angle: float) -> tuple[np.ndarray, np.ndarray]:
-    """Pose ``(body_pos (3,) m, body_quat (4,))`` of ``needle`` lying on ``arc``'s circle with its tip at
-    ``tip_angle`` (rad, the arc's angle convention) and its body trailing behind the tip.
-
-    The needle's shape frame (circle in its x-y plane, normal +z, tip at polar angle ``tau``) maps to the arc:
-    shape x -> ``cos(a) u + sin(a) v``, shape y -> ``sin(a) u - cos(a) v``, shape z -> ``-axis``, with
-    ``a = tip_angle + tau``, so shape angle ``theta`` lands at arc angle ``a - theta``.
-    """
-    a = tip_angle + needle.shape.tip_angle
-    e1 = math.cos(a) * arc.u + math.sin(a) * arc.v
-    e2 = math.sin(a) * arc.u - math.cos(a) * arc.v
-    rot = np.stack([e1, e2, -arc.axis], axis=1)
-    quat = _quat_from_matrix(rot)
-    return arc.center - quat_to_matrix(quat) @ needle.arc_center_body, quat
 
 
 @dataclass(frozen=True)
@@ -244,8 +214,8 @@ class Simulation:
             self._builds.move_to_end(key)
         return build
 
-    def _tissue(self, params: EpisodeParams):
-        """``(TissueModel, left face (k,), right face (k,))``; the faces are the wound faces' free particles in
+    def _tissue(self, params: EpisodeParams) -> tuple[Scene, np.ndarray, np.ndarray]:
+        """``(tissue Scene, left face (k,), right face (k,))``; the faces are the wound faces' free particles in
         the upper half of the tissue (the gap a surgeon sees; the bottom rows sit on the rigid base)."""
         cfg = self.config
         t = cfg.tissue
@@ -255,20 +225,18 @@ class Simulation:
         scene = cfg.scene
         empty = np.zeros(0, dtype=np.int64)
         if scene.kind == "pad":
-            mesh = box_tet_grid(scene.size, scene.cells, scheme="five")
-            pinned = mesh.vertices[:, 2] <= 1e-9 * scene.size[2]
-            return TissueModel.from_mesh(mesh, material, pinned=pinned), empty, empty
+            return suturing_pad(scene.size, scene.cells, material, "five", STANDARD_GRAVITY), empty, empty
         built = two_bar_wound(bar_size=scene.size, cells=scene.cells, gap=params.gap, material=material, scheme="five",
                               base=True, gravity=STANDARD_GRAVITY)
         tissue = built.model.tissue
         upper = (tissue.particle_inv_mass > 0.0) & (tissue.particle_rest_q[:, 2] >= 0.5 * scene.size[2])
         left = built.regions["left_wound_face"]
         right = built.regions["right_wound_face"]
-        return tissue, left[upper[left]], right[upper[right]]
+        return built, left[upper[left]], right[upper[right]]
 
     def _make_build(self, params: EpisodeParams) -> _Build:
         cfg = self.config
-        tissue, left, right = self._tissue(params)
+        tissue_scene, left, right = self._tissue(params)
         arcs = plan_stitches(cfg.scene.kind, cfg.scene.size, params.gap, self.needle_shape.curvature_radius,
                              cfg.plan.center_height, cfg.plan.stitches)
         coupling_cfg = cfg.coupling
@@ -281,7 +249,8 @@ class Simulation:
             needle_axial_friction=coupling_cfg.needle_axial_friction,
         )
         needle = self.needle_model
-        pos, quat = needle_pose_on_arc(needle, arcs[0], arcs[0].entry_angle - cfg.plan.start_angle)
+        pos, quat = needle_circle_pose(needle, arcs[0].center, arcs[0].axis, arcs[0].u,
+                                       arcs[0].entry_angle - cfg.plan.start_angle)
         grip = pos + quat_rotate(quat, needle.grip_pos_body)
         quat = quat_normalize(quat_mul(quat_from_rotation_vector(params.needle_rotation_offset), quat))
         pos = grip - quat_rotate(quat, needle.grip_pos_body) + params.needle_position_offset
@@ -295,17 +264,15 @@ class Simulation:
                 suture_state = _tent_rod(suture, swage, tail, np.array([0.0, -1.0, 1.0]))
             else:
                 suture_state = RodState.straight(suture, swage, (0.0, -1.0, 1.0))
-        coupling = CouplingModel.build(tissue, needle, suture, coupling_params, knot_tail=cfg.suture.knot_tail)
-        model = Model(tissue=tissue, needle=needle, suture=suture, coupling=coupling,
-                      gravity=(0.0, 0.0, -STANDARD_GRAVITY))
-        initial = State.initial(model, needle=needle_state, suture=suture_state)
-        rest = tissue.particle_rest_q
+        scene = assemble(tissue_scene, needle, needle_state, suture, suture_state, coupling_params,
+                         knot_tail=cfg.suture.knot_tail)
+        rest = scene.model.tissue.particle_rest_q
         margin = cfg.termination.workspace_margin
         workspace = np.stack([rest.min(axis=0) - margin, rest.max(axis=0) + margin])
         gap_rest = _mean_gap(rest, left, right)
         for array in (workspace, left, right):
             array.flags.writeable = False
-        return _Build(model, arcs, workspace, left, right, gap_rest, initial)
+        return _Build(scene.model, arcs, workspace, left, right, gap_rest, scene.state)
 
     # ------------------------------------------------------------------------------------------------------
     # Episode
@@ -392,7 +359,7 @@ class Simulation:
     def arc_grip_target(self, arc: PlannedArc, tip_angle: float) -> tuple[np.ndarray, np.ndarray]:
         """Grip pose ``(position (3,) m, orientation (4,))`` of the needle lying on ``arc`` with its tip at
         ``tip_angle`` (rad)."""
-        pos, quat = needle_pose_on_arc(self.model.needle, arc, tip_angle)
+        pos, quat = needle_circle_pose(self.model.needle, arc.center, arc.axis, arc.u, tip_angle)
         return pos + quat_rotate(quat, self.model.needle.grip_pos_body), quat
 
     def _turn(self, arc: PlannedArc, start: float, end: float) -> None:
