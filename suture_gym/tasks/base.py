@@ -172,6 +172,42 @@ class TaskOutcome:
     failed: bool
 
 
+@dataclass(frozen=True)
+class StepContext:
+    """What the reward terms of one step read (built by :meth:`Task._advance` after the bookkeeping).
+
+    Attributes:
+        obs: the observables after the step; ``action`` the raw ``(6,)`` action.
+        exited_before: the current stitch had its final exit before this step.
+        arc_before: the current planned stitch before this step.
+        events: ``entry``, ``exit`` and ``puncture`` term values of this step's events.
+        potential, previous_potential: ``Phi`` after and before the step.
+        thread, previous_thread: thread through the stitch (capped at the target) after and before, m.
+        previous_gap: mean wound gap before the step, m.
+        success: the task is achieved; ``newly_succeeded``: for the first time this step.
+        cost: tissue-force cost (>= 0).
+        outside: the tip left the workspace; ``missed``: see :class:`TaskOutcome`; ``failed``: the episode ends
+            in failure.
+    """
+
+    obs: Observables
+    action: np.ndarray
+    exited_before: bool
+    arc_before: PlannedArc
+    events: dict
+    potential: float
+    previous_potential: float
+    thread: float
+    previous_thread: float
+    previous_gap: float
+    success: bool
+    newly_succeeded: bool
+    cost: float
+    outside: bool
+    missed: bool
+    failed: bool
+
+
 class Task(ABC):
     """Base of the suturing tasks. Subclasses set the class attributes and the goal methods.
 
@@ -252,61 +288,106 @@ class Task(ABC):
         self.state = state.copy()
 
     def step(self, obs: Observables, action: np.ndarray) -> TaskOutcome:
-        """Reward terms and flags for the step that led to ``obs`` under ``action`` (6,)."""
-        w = self.reward
+        """Reward terms and flags for the step that led to ``obs`` under ``action`` (6,): the bookkeeping
+        (:meth:`_advance`) first, then each term of ``TERMS`` from its ``term_<name>`` method."""
+        ctx = self._advance(obs, action)
+        values = {name: getattr(self, f"term_{name}")(ctx) for name in self.TERMS}
+        return TaskOutcome(
+            terms=values,
+            reward=math.fsum(values.values()),
+            cost=ctx.cost,
+            success=ctx.success,
+            tear=obs.damaged,
+            out_of_workspace=ctx.outside,
+            missed=ctx.missed,
+            failed=ctx.failed,
+        )
+
+    def _advance(self, obs: Observables, action: np.ndarray) -> StepContext:
+        """Update the bookkeeping with ``obs`` (events, potential, thread, gap, stitch, success, end) and return
+        what the reward terms read."""
         st = self.state
-        values = dict.fromkeys(self.TERMS, 0.0)
-        if "path" in values and not st.exited:
-            d = self.arc.distance(obs.tip_pos)
-            values["path"] = -w.path * d / (d + w.path_scale)
-        event_terms = self._consume_events(obs)
-        for name, value in event_terms.items():
-            if name in values:
-                values[name] = value
-        potential = self._potential(obs)
+        w = self.reward
+        exited_before, arc_before = st.exited, self.arc
+        events = self._consume_events(obs)
         previous_potential = st.potential
-        if "progress" in values:
-            values["progress"] = w.progress * (potential - previous_potential)
-        st.potential = potential
+        st.potential = self._potential(obs)
         thread = self._thread(obs)
-        if "thread" in values:
-            values["thread"] = w.thread * (thread - st.thread) / self.thread_target
-        st.thread = thread
-        if "closure" in values:
-            values["closure"] = w.closure * (st.gap - obs.wound_gap) / self.gap_rest
-        st.gap = obs.wound_gap
+        previous_thread, st.thread = st.thread, thread
+        previous_gap, st.gap = st.gap, obs.wound_gap
+        potential = st.potential
         self._advance_stitch()
         success = self.success(obs)
-        if success and not st.succeeded:
-            st.succeeded = True
-            if "success" in values:
-                values["success"] = w.success
-        cost = max(0.0, obs.tissue_force - w.safe_force) / (self.tear_force - w.safe_force)
-        if "tissue_force" in values:
-            values["tissue_force"] = -w.tissue_force * cost
-        if "action" in values:
-            values["action"] = -w.action * float(np.mean(np.square(action)))
+        newly_succeeded = success and not st.succeeded
+        st.succeeded = st.succeeded or success
         outside = bool(np.any(obs.tip_pos < self.workspace[0]) or np.any(obs.tip_pos > self.workspace[1]))
         missed = self.missed()
         failed = not success and (outside or (obs.damaged and self.end_on_tear) or (missed and self.end_on_miss))
         if failed:
             # A failing end is absorbing and its shaping potential is 0 (Ng et al. 1999): the progress banked on
-            # the way is handed back, so ending an episode early can never pay.
-            if "progress" in values:
-                values["progress"] = -w.progress * previous_potential
-            if "failure" in values:
-                values["failure"] = -w.failure
+            # the way is handed back (term_progress), so ending an episode early can never pay.
             st.potential = 0.0
-        return TaskOutcome(
-            terms=values,
-            reward=math.fsum(values.values()),
-            cost=cost,
-            success=success,
-            tear=obs.damaged,
-            out_of_workspace=outside,
-            missed=missed,
-            failed=failed,
+        return StepContext(
+            obs=obs, action=action, exited_before=exited_before, arc_before=arc_before, events=events,
+            potential=potential, previous_potential=previous_potential, thread=thread,
+            previous_thread=previous_thread, previous_gap=previous_gap, success=success,
+            newly_succeeded=newly_succeeded,
+            cost=max(0.0, obs.tissue_force - w.safe_force) / (self.tear_force - w.safe_force),
+            outside=outside, missed=missed, failed=failed,
         )
+
+    # ------------------------------------------------------------------------------------------------------
+    # Reward terms: one method ``term_<name>(ctx) -> float`` per name in TERMS (formulas in the module doc)
+    # ------------------------------------------------------------------------------------------------------
+
+    def term_path(self, ctx: StepContext) -> float:
+        """``-w_path d / (d + path_scale)``, ``d`` the tip's distance to the stitch's circle (m); 0 once exited."""
+        if ctx.exited_before:
+            return 0.0
+        d = ctx.arc_before.distance(ctx.obs.tip_pos)
+        return -self.reward.path * d / (d + self.reward.path_scale)
+
+    def term_progress(self, ctx: StepContext) -> float:
+        """``w_progress (Phi' - Phi)``; ``-w_progress Phi`` on a failing end (its potential is 0)."""
+        if ctx.failed:
+            return -self.reward.progress * ctx.previous_potential
+        return self.reward.progress * (ctx.potential - ctx.previous_potential)
+
+    def term_entry(self, ctx: StepContext) -> float:
+        """``w_entry max(0, 1 - e / access_tolerance)`` at the stitch's first puncture, ``e`` its error (m)."""
+        return ctx.events["entry"]
+
+    def term_exit(self, ctx: StepContext) -> float:
+        """``w_exit max(0, 1 - e / access_tolerance)`` at the stitch's final exit, ``e`` its error (m)."""
+        return ctx.events["exit"]
+
+    def term_puncture(self, ctx: StepContext) -> float:
+        """``+w_puncture`` per new planned hole, ``-w_puncture`` per unplanned one, 0 for a re-entered hole."""
+        return ctx.events["puncture"]
+
+    def term_thread(self, ctx: StepContext) -> float:
+        """``w_thread (min(L', T) - min(L, T)) / T``, ``L`` the thread (m) through the stitch's exit."""
+        return self.reward.thread * (ctx.thread - ctx.previous_thread) / self.thread_target
+
+    def term_closure(self, ctx: StepContext) -> float:
+        """``w_closure (g - g') / g0``, ``g`` the mean wound gap (m), ``g0`` the gap at rest."""
+        return self.reward.closure * (ctx.previous_gap - ctx.obs.wound_gap) / self.gap_rest
+
+    def term_success(self, ctx: StepContext) -> float:
+        """``w_success`` once, on the step the task succeeds."""
+        return self.reward.success if ctx.newly_succeeded else 0.0
+
+    def term_failure(self, ctx: StepContext) -> float:
+        """``-w_failure`` once, on the step the episode ends in failure."""
+        return -self.reward.failure if ctx.failed else 0.0
+
+    def term_tissue_force(self, ctx: StepContext) -> float:
+        """``-w_tissue_force cost``, ``cost = max(0, F - safe_force) / (tear_force - safe_force)``, ``F`` in N."""
+        return -self.reward.tissue_force * ctx.cost
+
+    def term_action(self, ctx: StepContext) -> float:
+        """``-w_action mean(a^2)`` of the raw action."""
+        return -self.reward.action * float(np.mean(np.square(ctx.action)))
 
     def missed(self) -> bool:
         """Whether the current stitch was entered or exited farther than ``access_tolerance`` from the plan, in a
