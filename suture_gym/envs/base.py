@@ -35,10 +35,11 @@ import numpy as np
 
 from suture_gym.envs.config import EnvConfig, apply_overrides, load_config
 from suture_gym.envs.randomization import EpisodeParams, nominal_params, sample_params
+from suture_gym.envs.registry import task_class
 from suture_gym.envs.simulation import Simulation, SimulationSnapshot
 from suture_gym.envs.spaces import SDIST_CLIP, ObsField, observation_layout, observation_size
 from suture_gym.sim.quat import quat_conj, quat_from_rotation_vector, quat_mul, quat_normalize, quat_rotation_vector
-from suture_gym.tasks import TASK_CLASSES, Observables, Task, TaskState
+from suture_gym.tasks import Observables, Task, TaskState
 
 #: Keys ``reset(options=...)`` accepts.
 RESET_OPTIONS = ("phase", "params")
@@ -75,7 +76,7 @@ class SutureEnv(gym.Env):
     """A suturing task on the XPBD simulator (module docstring for spaces, ends and ``info``).
 
     Args:
-        task: ``"needle_insert"``, ``"suture_throw"`` or ``"wound_closure"``.
+        task: a registered task name (``"needle_insert"``, ``"suture_throw"``, ``"wound_closure"``, ...).
         config: None (the task's defaults), an :class:`~suture_gym.envs.config.EnvConfig`, a nested mapping of
             overrides or the path of a YAML file of overrides (``configs/envs/*.yaml``).
         render_mode: None or ``"rgb_array"``.
@@ -97,7 +98,7 @@ class SutureEnv(gym.Env):
         self.config: EnvConfig = cfg
         self.render_mode = render_mode
         self.sim = Simulation(cfg)
-        self.task_cls: type[Task] = TASK_CLASSES[cfg.task]
+        self.task_cls: type[Task] = task_class(cfg.task)
         self.task: Task = self._make_task()
         self.layout: tuple[ObsField, ...] = observation_layout(cfg)
         self.obs_index: dict[str, slice] = {f.name: f.slice for f in self.layout}
@@ -273,6 +274,7 @@ class SutureEnv(gym.Env):
             gap_rest=self.sim.gap_rest,
             end_on_tear=cfg.termination.end_on_tear,
             end_on_miss=cfg.termination.end_on_miss and not self._GOAL_CONDITIONED,
+            params=cfg.task_params,
         )
 
     @staticmethod

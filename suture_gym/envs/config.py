@@ -19,8 +19,8 @@ from dataclasses import dataclass, field, fields, is_dataclass, replace
 from pathlib import Path
 from typing import Any, ClassVar
 
-#: Task names, in the order of the registered ids.
-TASKS: tuple[str, ...] = ("needle_insert", "suture_throw", "wound_closure")
+from suture_gym.envs.registry import task_class
+
 #: Action modes: a wrench on the needle holder, or a pose change of the holder through the virtual coupling.
 ACTION_MODES: tuple[str, ...] = ("wrench", "pose_delta")
 #: Scene kinds: one tissue pad, or two bars with a wound gap between them.
@@ -412,44 +412,29 @@ class EnvConfig:
     termination: TerminationConfig = field(default_factory=TerminationConfig)
     observation: ObservationConfig = field(default_factory=ObservationConfig)
     render: RenderConfig = field(default_factory=RenderConfig)
+    #: The task's own section (an instance of its class's ``PARAMS``; None: its defaults, or none).
+    task_params: Any = None
 
     def __post_init__(self) -> None:
-        _choice("task", self.task, TASKS)
+        cls = task_class(self.task)
+        if cls.PARAMS is None:
+            if self.task_params is not None:
+                _fail("task_params", f"must be empty: task {self.task!r} has no parameters of its own")
+        elif self.task_params is None:
+            object.__setattr__(self, "task_params", cls.PARAMS())
+        elif type(self.task_params) is not cls.PARAMS:
+            _fail("task_params", f"must be a {cls.PARAMS.__name__}, got {type(self.task_params).__name__}")
         for f in fields(self):
             section = getattr(self, f.name)
-            if f.name != "task" and type(section) is not _field_types(EnvConfig)[f.name]:
+            if f.name not in ("task", "task_params") and type(section) is not _field_types(EnvConfig)[f.name]:
                 _fail(f.name, f"must be a {_field_types(EnvConfig)[f.name].__name__}, got {type(section).__name__}")
-        if self.scene.kind == "pad" and self.task != "needle_insert":
-            _fail("scene.kind", f"must be 'wound' for task {self.task!r}, got 'pad'")
-        if self.task != "needle_insert" and self.suture.node_count == 0:
-            _fail("suture.node_count", f"must be >= 2 for task {self.task!r} (the thread is pulled through)")
-
-
-#: Per-task differences from the typed defaults above (which are NeedleInsert's).
-_TASK_DEFAULTS: dict[str, dict] = {
-    "needle_insert": {},
-    "suture_throw": {
-        "task": "suture_throw",
-        "scene": {"kind": "wound", "size": (0.012, 0.012, 0.008)},
-        "suture": {"node_count": 31, "length": 0.03},
-        "observation": {"suture_samples": 4},
-        "reward": {"failure": 20.0},
-    },
-    "wound_closure": {
-        "task": "wound_closure",
-        "scene": {"kind": "wound", "size": (0.03, 0.012, 0.008)},
-        "suture": {"node_count": 86, "length": 0.085, "knot_tail": 0.008},
-        "plan": {"stitches": 3},
-        "observation": {"suture_samples": 4},
-        "reward": {"failure": 30.0},
-    },
-}
+        cls.check_config(self)
 
 
 def default_config(task: str) -> EnvConfig:
-    """The typed defaults of ``task`` (one of :data:`TASKS`): what the registered ids use."""
-    _choice("task", task, TASKS)
-    return apply_overrides(EnvConfig(), _TASK_DEFAULTS[task])
+    """The defaults of the registered ``task``: the typed defaults overridden by the task class's ``CONFIG``
+    (what the registered ids use)."""
+    return apply_overrides(EnvConfig(), {"task": task, **task_class(task).CONFIG})
 
 
 @functools.cache
@@ -497,8 +482,31 @@ def _merge(prefix: str, base: Any, overrides: dict) -> Any:
     if unknown:
         names = ", ".join(f"'{prefix}{k}'" for k in unknown)
         raise ValueError(f"unknown config key(s) {names}; known keys here: {sorted(types)}")
-    changes = {key: _coerce(prefix + key, value, types[key], getattr(base, key)) for key, value in overrides.items()}
+    changes = {key: _coerce(prefix + key, value, types[key], getattr(base, key))
+               for key, value in overrides.items() if key != "task_params"}
+    if isinstance(base, EnvConfig):
+        changes["task_params"] = _task_params(base, changes.get("task", base.task), overrides)
     return replace(base, **changes)
+
+
+def _task_params(base: EnvConfig, task: str, overrides: dict) -> Any:
+    """The ``task_params`` section of ``task`` after ``overrides``: the task class's ``PARAMS`` (kept from
+    ``base`` when the task does not change) with ``overrides["task_params"]`` merged in."""
+    params_cls = task_class(task).PARAMS
+    value = overrides.get("task_params")
+    if params_cls is None:
+        if value:
+            _fail("task_params", f"must be empty: task {task!r} has no parameters of its own")
+        return None
+    current = base.task_params if task == base.task and base.task_params is not None else params_cls()
+    if value is None:
+        return current
+    if not isinstance(value, dict):
+        _fail("task_params", f"must be a mapping of {params_cls.__name__} fields, got {type(value).__name__}")
+    try:
+        return _merge("task_params.", current, value)
+    except ValueError as error:
+        raise ValueError(f"task_params ({task}): {error}") from None
 
 
 def apply_overrides(config: EnvConfig, overrides: dict) -> EnvConfig:
@@ -525,7 +533,7 @@ def load_config(task: str, source: EnvConfig | dict | str | os.PathLike | None =
     """The config of ``task``: its defaults, overridden by ``source``.
 
     Args:
-        task: one of :data:`TASKS`.
+        task: a registered task (:func:`~suture_gym.envs.registry.registered_tasks`).
         source: None (defaults), an :class:`EnvConfig` (used as is; its ``task`` must match), a nested mapping
             or the path of a YAML file holding one. A ``task`` key, if present, must name ``task``.
 
@@ -572,7 +580,6 @@ def save_config(config: EnvConfig, path: str | os.PathLike) -> None:
 
 __all__ = [
     "ACTION_MODES",
-    "TASKS",
     "ActionConfig",
     "CouplingConfig",
     "EnvConfig",

@@ -7,11 +7,9 @@ Scene (all SI, gravity along -z, the tissue on a rigid base at ``z = 0``):
   bottom faces pinned (and, for the bars, both end faces, as in paper Fig. 5);
 * the curved needle (:mod:`suture_gym.sim.needle`), its plane ``x = const`` across the pad or the wound, placed
   with its tip on the first planned circle ``plan.start_angle`` before the entry point;
-* the suture (:mod:`suture_gym.sim.rod`) on the swage, if ``suture.node_count > 0``: lying straight along
-  ``(0, -1, 1)`` from the swage (up and back, clear of the needle), or, for ``wound_closure``, laid from the
-  swage up and back (along ``(0, -1, 1)``) and down to a free end just outside the first entry point in two
-  straight legs; ``suture.knot_tail`` from that end a stopper knot (wound_closure's running suture) stops the
-  thread at the first entry, so pulling it draws the wound together;
+* the suture (:mod:`suture_gym.sim.rod`) on the swage, if ``suture.node_count > 0``, laid out by the task's
+  :meth:`~suture_gym.tasks.Task.initial_suture` hook; ``suture.knot_tail`` from its free end a stopper knot
+  (wound_closure's running suture) stops the thread at the first entry, so pulling it draws the wound together;
 * the coupling of needle and suture with the tissue (:mod:`suture_gym.sim.coupling`).
 
 One env step is ``solver.substeps`` substeps of ``solver.dt``. Between substeps the facade records the events
@@ -20,10 +18,10 @@ material points: the access point's triangle and barycentric coordinates evaluat
 so "where the needle went in" does not depend on how far the needle had dented the surface at that moment, and
 compares directly with the planned points (defined on the rest shape).
 
-Start phases (``reset(..., phase)``) past ``approach`` are reached by a scripted surgeon: a virtual coupling
-turns the needle about its own centre along the planned arc (and, for ``first_bite``, pulls the thread), from
-the approach state of the same parameters; the result is cached per parameters, so repeated resets of an
-unrandomised env cost one state copy.
+Start phases (``reset(..., phase)``) past the task's first are reached by the task's
+:meth:`~suture_gym.tasks.Task.start_phase` hook (by default the scripted surgeon of
+:mod:`suture_gym.tasks.surgeon`), from the approach state of the same parameters; the result is cached per
+parameters, so repeated resets of an unrandomised env cost one state copy.
 """
 
 from __future__ import annotations
@@ -36,6 +34,7 @@ import numpy as np
 
 from suture_gym.envs.config import EnvConfig
 from suture_gym.envs.randomization import EpisodeParams, nominal_params
+from suture_gym.envs.registry import task_class
 from suture_gym.render.scene import RenderFrame
 from suture_gym.sim.coupling import CouplingParams, access_point
 from suture_gym.sim.model import Control, Model, State, TissueMaterial
@@ -44,20 +43,16 @@ from suture_gym.sim.needle import (
     NeedleShape,
     NeedleState,
     VirtualCoupling,
-    needle_point_velocity,
     needle_point_world,
 )
 from suture_gym.sim.quat import (
-    quat_conj,
     quat_from_rotation_vector,
-    quat_from_two_vectors,
     quat_mul,
     quat_normalize,
     quat_rotate,
-    quat_rotation_vector,
     quat_to_matrix,
 )
-from suture_gym.sim.rod import RodModel, RodState, SutureParams
+from suture_gym.sim.rod import RodModel, SutureParams
 from suture_gym.sim.scenes import (
     STANDARD_GRAVITY,
     Scene,
@@ -71,19 +66,6 @@ from suture_gym.tasks import Observables, PlannedArc, plan_stitches
 
 #: Most built scenes and most scripted-phase start states kept per simulation.
 CACHE_SIZE = 4
-#: Turn rate of the scripted surgeon, rad/s.
-SCRIPT_TURN_RATE = 1.0
-#: How far (rad) the scripted surgeon turns the tip past the exit (``exited``), and the swage past the exit
-#: (``first_bite``).
-SCRIPT_CLEARANCE = 0.3
-#: Force (N) and damping (N s/m) with which the scripted surgeon pulls the thread once the needle is out, and
-#: the longest it pulls (s).
-SCRIPT_PULL_FORCE = 0.03
-SCRIPT_PULL_DAMPING = 2.0
-SCRIPT_PULL_TIME = 3.0
-#: Distance outside the first entry at which the wound-closure thread's free end starts, m.
-TAIL_OFFSET = 8.0e-3
-
 
 @dataclass(frozen=True)
 class _Build:
@@ -121,6 +103,7 @@ class Simulation:
 
     def __init__(self, config: EnvConfig) -> None:
         self.config = config
+        self.task_cls = task_class(config.task)
         s = config.solver
         self.solver = Solver(iterations=s.iterations, max_speed=s.max_speed)
         self.dt = s.dt
@@ -258,12 +241,7 @@ class Simulation:
         suture = suture_state = None
         if self.suture_params is not None:
             suture = RodModel.from_params(self.suture_params)
-            swage = pos + quat_rotate(quat, needle.swage_pos_body)
-            if cfg.task == "wound_closure":
-                tail = arcs[0].entry + np.array([0.0, -TAIL_OFFSET, 0.25 * TAIL_OFFSET])
-                suture_state = _tent_rod(suture, swage, tail, np.array([0.0, -1.0, 1.0]))
-            else:
-                suture_state = RodState.straight(suture, swage, (0.0, -1.0, 1.0))
+            suture_state = self.task_cls.initial_suture(suture, pos + quat_rotate(quat, needle.swage_pos_body), arcs)
         scene = assemble(tissue_scene, needle, needle_state, suture, suture_state, coupling_params,
                          knot_tail=cfg.suture.knot_tail)
         rest = scene.model.tissue.particle_rest_q
@@ -297,8 +275,8 @@ class Simulation:
             return
         self.state = self._build.initial.snapshot()
         self._entries, self._exits = [], []
-        if phase != "approach":
-            self._run_script(phase)
+        if phase != self.task_cls.PHASES[0]:
+            self.task_cls.start_phase(self, phase)
         self._phase_cache[key] = self.snapshot()
         if len(self._phase_cache) > CACHE_SIZE:
             self._phase_cache.popitem(last=False)
@@ -323,6 +301,11 @@ class Simulation:
             return
         self.control.needle_wrench[:] = self.coupling_spring.wrench(self.model.needle, needle, target_pos, target_quat)
 
+    def substep(self, wrench: np.ndarray) -> None:
+        """Advance one solver substep with the grip-point ``wrench`` (6,) ``[N, N m]``."""
+        self.control.needle_wrench[:] = wrench
+        self._substep()
+
     def _substep(self) -> None:
         """One solver substep, recording punctures and exits."""
         state = self.state
@@ -344,7 +327,7 @@ class Simulation:
             self._exits.append(access_point(model, rest, coupling.path_exit_tri[k], coupling.path_exit_bary[k]))
 
     # ------------------------------------------------------------------------------------------------------
-    # Scripted surgeon (start phases)
+    # Poses (the scripted surgeon's, suture_gym.tasks.surgeon)
     # ------------------------------------------------------------------------------------------------------
 
     def grip_pose(self) -> tuple[np.ndarray, np.ndarray]:
@@ -361,53 +344,6 @@ class Simulation:
         ``tip_angle`` (rad)."""
         pos, quat = needle_circle_pose(self.model.needle, arc.center, arc.axis, arc.u, tip_angle)
         return pos + quat_rotate(quat, self.model.needle.grip_pos_body), quat
-
-    def _turn(self, arc: PlannedArc, start: float, end: float) -> None:
-        """Turn the needle's target about ``arc``'s centre from tip angle ``start`` to ``end`` (rad)."""
-        steps = max(1, int(math.ceil(abs(end - start) / (SCRIPT_TURN_RATE * self.control_dt))))
-        for i in range(1, steps + 1):
-            target = self.arc_grip_target(arc, start + (end - start) * i / steps)
-            self.step_toward(*target)
-            if self.state.diverged:
-                return
-
-    def _run_script(self, phase: str) -> None:
-        """Drive the needle from the approach pose to the start of ``phase``."""
-        arc = self.arcs[0]
-        start = arc.entry_angle - self.config.plan.start_angle
-        if phase == "inserted":
-            self._turn(arc, start, 0.5 * (arc.entry_angle + arc.exit_angle))
-            return
-        if phase == "exited":
-            self._turn(arc, start, arc.exit_angle + SCRIPT_CLEARANCE)
-            return
-        if phase == "first_bite":
-            clear = arc.exit_angle + self.model.needle.shape.arc_angle + SCRIPT_CLEARANCE
-            self._turn(arc, start, clear)
-            self._pull_thread(arc, clear)
-            return
-        raise ValueError(f"unknown start phase {phase!r}")
-
-    def _pull_thread(self, arc: PlannedArc, tip_angle: float) -> None:
-        """Pull the needle along ``arc.pull_direction`` with a constant force (``SCRIPT_PULL_FORCE``, damped by
-        ``SCRIPT_PULL_DAMPING``; orientation held by the virtual coupling's angular spring) until the thread is
-        through by ``plan.thread_target``, for at most ``SCRIPT_PULL_TIME``."""
-        target = self.config.plan.thread_target
-        _, hold = self.arc_grip_target(arc, tip_angle)
-        force = SCRIPT_PULL_FORCE * arc.pull_direction
-        spring = self.coupling_spring
-        needle_model = self.model.needle
-        for _ in range(int(math.ceil(SCRIPT_PULL_TIME / self.control_dt))):
-            if self.thread_through() >= target or self.state.diverged:
-                return
-            for _ in range(self.substeps):
-                needle = self.state.needle
-                velocity = needle_point_velocity(needle_model, needle, needle_model.grip_pos_body)
-                turn = quat_rotation_vector(quat_mul(hold, quat_conj(needle.body_quat)))
-                self.control.needle_wrench[:3] = force - SCRIPT_PULL_DAMPING * velocity
-                torque = spring.angular_stiffness * turn - spring.angular_damping * needle.body_omega
-                self.control.needle_wrench[3:] = torque
-                self._substep()
 
     # ------------------------------------------------------------------------------------------------------
     # Observables
@@ -523,39 +459,3 @@ def _mean_gap(q: np.ndarray, left: np.ndarray, right: np.ndarray) -> float:
     if left.size == 0 or right.size == 0:
         return 0.0
     return float(q[right, 1].mean() - q[left, 1].mean())
-
-
-def _tent_rod(model: RodModel, start: np.ndarray, end: np.ndarray, direction: np.ndarray) -> RodState:
-    """A rod at rest from ``start`` (3,) to ``end`` (3,) m along two straight legs meeting at an apex beyond their
-    midpoint along ``direction`` (3,), placed so the legs' total length is the rod's rest length (a tent); nodes
-    at their rest arc lengths, segment frames along the legs."""
-    length = float(model.seg_rest_length.sum())
-    distance = float(np.linalg.norm(end - start))
-    if not distance < length:
-        raise ValueError(f"the thread ({length} m) is too short to reach its end point {distance:.4g} m away")
-    mid = 0.5 * (start + end)
-    d = direction / np.linalg.norm(direction)
-
-    def legs(k: float) -> float:
-        apex = mid + k * d
-        return float(np.linalg.norm(apex - start) + np.linalg.norm(end - apex))
-
-    lo, hi = 0.0, length
-    for _ in range(100):  # bisection: the legs' length grows monotonically with k
-        k = 0.5 * (lo + hi)
-        lo, hi = (k, hi) if legs(k) < length else (lo, k)
-    apex = mid + hi * d
-    leg = float(np.linalg.norm(apex - start))
-    s = np.concatenate([[0.0], np.cumsum(model.seg_rest_length)])
-    first = s <= leg
-    pos = np.empty((len(s), 3))
-    pos[first] = start + s[first, None] / leg * (apex - start)
-    rest = (s[~first] - leg) / max(length - leg, 1e-300)
-    pos[~first] = apex + np.minimum(rest, 1.0)[:, None] * (end - apex)
-    state = RodState.straight(model, start, end - start)
-    state.node_pos[:] = pos
-    state.node_pos_prev[:] = pos
-    z = np.array([0.0, 0.0, 1.0])
-    for j, e in enumerate(np.diff(pos, axis=0)):
-        state.seg_quat[j] = quat_from_two_vectors(z, e / np.linalg.norm(e))
-    return state

@@ -15,7 +15,7 @@ from suture_gym.sim.coupling import CouplingModel, CouplingParams
 from suture_gym.sim.mesh import TetMesh, box_tet_grid
 from suture_gym.sim.model import Model, State, TissueMaterial, TissueModel, TissueState
 from suture_gym.sim.needle import NeedleModel, NeedleShape, NeedleState
-from suture_gym.sim.quat import quat_from_axis_angle, quat_mul, quat_normalize, quat_to_matrix
+from suture_gym.sim.quat import quat_from_axis_angle, quat_from_two_vectors, quat_mul, quat_normalize, quat_to_matrix
 from suture_gym.sim.rod import RodModel, RodState, SutureParams
 
 STANDARD_GRAVITY = 9.81  # m/s^2
@@ -471,6 +471,42 @@ def add_strands(
         "coupling": None if coupling is None else asdict(coupling.params),
     })
     return built
+
+
+def tent_rod(model: RodModel, start: np.ndarray, end: np.ndarray, direction: np.ndarray) -> RodState:
+    """A rod at rest from ``start`` (3,) to ``end`` (3,) m along two straight legs meeting at an apex beyond their
+    midpoint along ``direction`` (3,), placed so the legs' total length is the rod's rest length (a tent); nodes
+    at their rest arc lengths, segment frames along the legs."""
+    length = float(model.seg_rest_length.sum())
+    distance = float(np.linalg.norm(end - start))
+    if not distance < length:
+        raise ValueError(f"the thread ({length} m) is too short to reach its end point {distance:.4g} m away")
+    mid = 0.5 * (start + end)
+    d = direction / np.linalg.norm(direction)
+
+    def legs(k: float) -> float:
+        apex = mid + k * d
+        return float(np.linalg.norm(apex - start) + np.linalg.norm(end - apex))
+
+    lo, hi = 0.0, length
+    for _ in range(100):  # bisection: the legs' length grows monotonically with k
+        k = 0.5 * (lo + hi)
+        lo, hi = (k, hi) if legs(k) < length else (lo, k)
+    apex = mid + hi * d
+    leg = float(np.linalg.norm(apex - start))
+    s = np.concatenate([[0.0], np.cumsum(model.seg_rest_length)])
+    first = s <= leg
+    pos = np.empty((len(s), 3))
+    pos[first] = start + s[first, None] / leg * (apex - start)
+    rest = (s[~first] - leg) / max(length - leg, 1e-300)
+    pos[~first] = apex + np.minimum(rest, 1.0)[:, None] * (end - apex)
+    state = RodState.straight(model, start, end - start)
+    state.node_pos[:] = pos
+    state.node_pos_prev[:] = pos
+    z = np.array([0.0, 0.0, 1.0])
+    for j, e in enumerate(np.diff(pos, axis=0)):
+        state.seg_quat[j] = quat_from_two_vectors(z, e / np.linalg.norm(e))
+    return state
 
 
 def two_bar_suturing(

@@ -52,6 +52,7 @@ from typing import ClassVar
 
 import numpy as np
 
+from suture_gym.sim.rod import RodModel, RodState
 from suture_gym.tasks.geometry import PlannedArc
 
 
@@ -221,14 +222,43 @@ class Task(ABC):
         gap_rest: mean wound gap at rest, m (0 without a wound; only tasks with a wound use it).
         end_on_tear: a tear ends the episode as a failure.
         end_on_miss: a miss (see :class:`TaskOutcome`) ends the episode as a failure.
+        params: the task's own config section (an instance of :attr:`PARAMS`; default its defaults).
     """
 
     #: Registered name (``EnvConfig.task``).
     NAME: ClassVar[str] = ""
+    #: Gymnasium id of the flat env (:func:`~suture_gym.envs.registry.register_task`).
+    ENV_ID: ClassVar[str] = ""
+    #: Gymnasium id of the goal-conditioned variant, or None for none.
+    GOAL_ENV_ID: ClassVar[str | None] = None
+    #: Time limit, env steps.
+    MAX_EPISODE_STEPS: ClassVar[int] = 0
+    #: The task's config defaults: nested overrides of the typed defaults of
+    #: :class:`~suture_gym.envs.config.EnvConfig` (what the registered ids use; YAML overrides them in turn).
+    CONFIG: ClassVar[dict] = {}
+    #: The task's own config section (YAML key ``task_params``): a frozen dataclass of its parameters, with
+    #: defaults, validated in ``__post_init__``; None for none. :attr:`params` holds the episode's values.
+    PARAMS: ClassVar[type | None] = None
+    #: Scene kinds (``scene.kind``) the task can be played on.
+    SCENE_KINDS: ClassVar[tuple[str, ...]] = ("pad", "wound")
+    #: The task pulls a thread through, so the config needs one (``suture.node_count >= 2``).
+    NEEDS_THREAD: ClassVar[bool] = False
+    #: The scripted surgeon's tip-angle advance while turning (rad/s) and holder speed while pulling (m/s).
+    SURGEON_TURN_RATE: ClassVar[float] = 1.0
+    SURGEON_PULL_SPEED: ClassVar[float] = 0.02
     #: Reward terms, in the order reported.
     TERMS: ClassVar[tuple[str, ...]] = ()
-    #: Start phases accepted by ``reset(options={"phase": ...})``, the first being the default.
+    #: Start phases accepted by ``reset(options={"phase": ...})``, the first being the default (the scene as
+    #: built); :meth:`start_phase` reaches the others.
     PHASES: ClassVar[tuple[str, ...]] = ("approach",)
+    #: What each start phase is, for the env docs.
+    PHASE_DOCS: ClassVar[dict[str, str]] = {
+        "approach": "the needle at rest with its tip on the first planned circle, ``plan.start_angle`` rad before "
+                    "the entry point",
+        "inserted": "the needle driven along the plan until the tip is halfway along the first arc",
+        "exited": "the needle driven along the plan until the tip is out at the far edge",
+        "first_bite": "the first stitch made and its thread pulled through by ``plan.thread_target``",
+    }
     #: Size of ``achieved_goal`` / ``desired_goal`` in the goal-conditioned variant.
     GOAL_SIZE: ClassVar[int] = 0
     #: Goal entries and their units, for the docs: (name, unit) per component.
@@ -240,7 +270,8 @@ class Task(ABC):
     NEEDS_PLANNED_ACCESS: ClassVar[bool] = False
 
     def __init__(self, arcs, reward, tear_force: float, thread_target: float, closure_target: float,
-                 workspace: np.ndarray, gap_rest: float, end_on_tear: bool = True, end_on_miss: bool = False) -> None:
+                 workspace: np.ndarray, gap_rest: float, end_on_tear: bool = True, end_on_miss: bool = False,
+                 params=None) -> None:
         if not arcs or not all(isinstance(a, PlannedArc) for a in arcs):
             raise ValueError("arcs must be a non-empty sequence of PlannedArc")
         if not (math.isfinite(tear_force) and tear_force > reward.safe_force):
@@ -257,7 +288,37 @@ class Task(ABC):
         self.gap_rest = float(gap_rest)
         self.end_on_tear = bool(end_on_tear)
         self.end_on_miss = bool(end_on_miss)
+        self.params = params if params is not None or self.PARAMS is None else self.PARAMS()
         self.state = TaskState()
+
+    # ------------------------------------------------------------------------------------------------------
+    # Hooks: config check and episode initialisation
+    # ------------------------------------------------------------------------------------------------------
+
+    @classmethod
+    def check_config(cls, config) -> None:
+        """Raise ValueError naming the key when the :class:`~suture_gym.envs.config.EnvConfig` ``config`` does
+        not suit the task (by default: ``scene.kind`` in :attr:`SCENE_KINDS`, a thread if :attr:`NEEDS_THREAD`)."""
+        if config.scene.kind not in cls.SCENE_KINDS:
+            kinds = " or ".join(repr(k) for k in cls.SCENE_KINDS)
+            raise ValueError(f"scene.kind must be {kinds} for task {cls.NAME!r}, got {config.scene.kind!r}")
+        if cls.NEEDS_THREAD and config.suture.node_count == 0:
+            raise ValueError(f"suture.node_count must be >= 2 for task {cls.NAME!r} (the thread is pulled through)")
+
+    @classmethod
+    def initial_suture(cls, suture: RodModel, swage: np.ndarray, arcs: tuple[PlannedArc, ...]) -> RodState:
+        """Episode initialisation: the thread at rest on the swage (3,) m of the approach pose; by default
+        straight along ``(0, -1, 1)`` (up and back, clear of the needle)."""
+        return RodState.straight(suture, swage, (0.0, -1.0, 1.0))
+
+    @classmethod
+    def start_phase(cls, sim, phase: str) -> None:
+        """Episode initialisation: drive the :class:`~suture_gym.envs.simulation.Simulation` ``sim`` from the
+        approach state to the start of ``phase`` (one of :attr:`PHASES` past the first); by default the scripted
+        surgeon's :func:`~suture_gym.tasks.surgeon.run_start_phase`."""
+        from suture_gym.tasks.surgeon import run_start_phase
+
+        run_start_phase(sim, phase)
 
     # ------------------------------------------------------------------------------------------------------
     # Episode
