@@ -32,15 +32,14 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from suture_gym.envs.config import EnvConfig
+from suture_gym.envs.config import EnvConfig, sim_fields
 from suture_gym.envs.randomization import EpisodeParams, nominal_params
 from suture_gym.envs.registry import task_class
 from suture_gym.render.scene import RenderFrame
-from suture_gym.sim.coupling import CouplingParams, access_point
+from suture_gym.sim.coupling import access_point
 from suture_gym.sim.model import Control, Model, State, TissueMaterial
 from suture_gym.sim.needle import (
     NeedleModel,
-    NeedleShape,
     NeedleState,
     VirtualCoupling,
     needle_point_world,
@@ -52,7 +51,7 @@ from suture_gym.sim.quat import (
     quat_rotate,
     quat_to_matrix,
 )
-from suture_gym.sim.rod import RodModel, SutureParams
+from suture_gym.sim.rod import RodModel
 from suture_gym.sim.scenes import (
     STANDARD_GRAVITY,
     Scene,
@@ -61,7 +60,6 @@ from suture_gym.sim.scenes import (
     suturing_pad,
     two_bar_wound,
 )
-from suture_gym.sim.solver import Solver
 from suture_gym.tasks import Observables, PlannedArc, plan_stitches
 
 #: Most built scenes and most scripted-phase start states kept per simulation.
@@ -105,29 +103,18 @@ class Simulation:
         self.config = config
         self.task_cls = task_class(config.task)
         s = config.solver
-        self.solver = Solver(iterations=s.iterations, max_speed=s.max_speed)
+        self.solver = s.solver()
         self.dt = s.dt
         self.substeps = s.substeps
         n = config.needle
-        self.needle_shape = NeedleShape(
-            arc=n.arc,
-            curvature_radius=n.curvature_radius,
-            wire_radius=n.wire_radius,
-            holder_mass=n.holder_mass,
-            holder_inertia=n.holder_inertia,
-            grip_fraction=n.grip_fraction,
-            node_count=n.node_count,
-        )
+        self.needle_shape = n.shape()
         self.needle_model = NeedleModel.from_shape(
             self.needle_shape,
             linear_damping=n.linear_damping,
             angular_damping=n.angular_damping,
             gravity_compensation=n.gravity_compensation,
         )
-        su = config.suture
-        self.suture_params = (
-            SutureParams(length=su.length, node_count=su.node_count, radius=su.radius) if su.node_count else None
-        )
+        self.suture_params = config.suture.params()
         a = config.action
         self.coupling_spring = VirtualCoupling(
             linear_stiffness=a.coupling_linear_stiffness,
@@ -202,9 +189,7 @@ class Simulation:
         the upper half of the tissue (the gap a surgeon sees; the bottom rows sit on the rigid base)."""
         cfg = self.config
         t = cfg.tissue
-        material = TissueMaterial(
-            youngs_modulus=params.youngs_modulus, poisson_ratio=t.poisson_ratio, density=t.density, damping=t.damping
-        )
+        material = TissueMaterial(**{**sim_fields(t, TissueMaterial), "youngs_modulus": params.youngs_modulus})
         scene = cfg.scene
         empty = np.zeros(0, dtype=np.int64)
         if scene.kind == "pad":
@@ -222,15 +207,7 @@ class Simulation:
         tissue_scene, left, right = self._tissue(params)
         arcs = plan_stitches(cfg.scene.kind, cfg.scene.size, params.gap, self.needle_shape.curvature_radius,
                              cfg.plan.center_height, cfg.plan.stitches)
-        coupling_cfg = cfg.coupling
-        coupling_params = CouplingParams(
-            puncture_force=params.puncture_force,
-            resistance_eps=coupling_cfg.resistance_eps,
-            path_spacing_min=coupling_cfg.path_spacing_min,
-            path_spacing_max=coupling_cfg.path_spacing_max,
-            tear_force=coupling_cfg.tear_force,
-            needle_axial_friction=coupling_cfg.needle_axial_friction,
-        )
+        coupling_params = cfg.coupling.params(puncture_force=params.puncture_force)
         needle = self.needle_model
         pos, quat = needle_circle_pose(needle, arcs[0].center, arcs[0].axis, arcs[0].u,
                                        arcs[0].entry_angle - cfg.plan.start_angle)
