@@ -13,10 +13,8 @@ Scene (all SI, gravity along -z, the tissue on a rigid base at ``z = 0``):
 * the coupling of needle and suture with the tissue (:mod:`suture_gym.sim.coupling`).
 
 One env step is ``solver.substeps`` substeps of ``solver.dt``. Between substeps the facade records the events
-the tasks need: each puncture (its entry point) and each exit of the tip (where it came out). Event points are
-material points: the access point's triangle and barycentric coordinates evaluated in the tissue's rest shape,
-so "where the needle went in" does not depend on how far the needle had dented the surface at that moment, and
-compares directly with the planned points (defined on the rest shape).
+the tasks need: each puncture (its entry point) and each exit of the tip (where it came out), as material points
+(:mod:`suture_gym.envs.readout`, the one place that reads the simulator's state for the tasks).
 
 Start phases (``reset(..., phase)``) past the task's first are reached by the task's
 :meth:`~suture_gym.tasks.Task.start_phase` hook (by default the scripted surgeon of
@@ -34,9 +32,9 @@ import numpy as np
 
 from suture_gym.envs.config import EnvConfig, sim_fields
 from suture_gym.envs.randomization import EpisodeParams, nominal_params
+from suture_gym.envs.readout import coupling_mark, mean_gap, observables, substep_events, thread_through
 from suture_gym.envs.registry import task_class
 from suture_gym.render.scene import RenderFrame
-from suture_gym.sim.coupling import access_point
 from suture_gym.sim.model import Control, Model, State, TissueMaterial
 from suture_gym.sim.needle import (
     NeedleModel,
@@ -224,7 +222,7 @@ class Simulation:
         rest = scene.model.tissue.particle_rest_q
         margin = cfg.termination.workspace_margin
         workspace = np.stack([rest.min(axis=0) - margin, rest.max(axis=0) + margin])
-        gap_rest = _mean_gap(rest, left, right)
+        gap_rest = mean_gap(rest, left, right)
         for array in (workspace, left, right):
             array.flags.writeable = False
         return _Build(scene.model, arcs, workspace, left, right, gap_rest, scene.state)
@@ -284,24 +282,16 @@ class Simulation:
         self._substep()
 
     def _substep(self) -> None:
-        """One solver substep, recording punctures and exits."""
-        state = self.state
-        coupling = state.coupling
-        punctures = coupling.punctures
-        count = coupling.path_count
-        was_open = coupling.punctured
-        self.solver.step(self.model, state, self.control, self.dt, timings=self.timings)
-        if state.diverged:
+        """One solver substep, recording punctures and exits (:func:`~suture_gym.envs.readout.substep_events`)."""
+        mark = coupling_mark(self.state)
+        self.solver.step(self.model, self.state, self.control, self.dt, timings=self.timings)
+        if self.state.diverged:
             return
-        coupling = state.coupling
-        rest = self.model.tissue.particle_rest_q
-        model = self.model.coupling
-        if coupling.punctures > punctures and coupling.path_count > 0:
-            k = coupling.path_count - 1
-            self._entries.append(access_point(model, rest, coupling.path_entry_tri[k], coupling.path_entry_bary[k]))
-        if was_open and coupling.path_count == count and not coupling.path_open[count - 1]:
-            k = count - 1
-            self._exits.append(access_point(model, rest, coupling.path_exit_tri[k], coupling.path_exit_bary[k]))
+        entry, exit_ = substep_events(self.model, mark, self.state)
+        if entry is not None:
+            self._entries.append(entry)
+        if exit_ is not None:
+            self._exits.append(exit_)
 
     # ------------------------------------------------------------------------------------------------------
     # Poses (the scripted surgeon's, suture_gym.tasks.surgeon)
@@ -328,58 +318,21 @@ class Simulation:
 
     def thread_through(self) -> float:
         """Thread beyond the needle that has come out of the newest exit point, m (0 before any exit)."""
-        c = self.state.coupling
-        n = c.path_count
-        newest = n - 1 if n > 0 and not c.path_open[n - 1] else n - 2
-        if newest < 0:
-            return 0.0
-        swage = float(self.model.coupling.strand_sigma[self.model.needle.node_count - 1])
-        return max(0.0, float(c.path_sigma_exit[newest]) - swage)
+        return thread_through(self.model, self.state)
 
     def wound_gap(self) -> float:
         """Mean gap between the wound faces, m, over their free particles in the upper half of the tissue (mean
         y of the far face minus mean y of the near face); 0 without a wound."""
-        return _mean_gap(self.state.tissue.particle_q, self._build.left_face, self._build.right_face)
+        return mean_gap(self.state.tissue.particle_q, self._build.left_face, self._build.right_face)
 
     def observables(self) -> Observables:
-        """Snapshot of what the tasks read (copies); clears the recorded events."""
-        state = self.state
-        needle_model = self.model.needle
-        needle = state.needle
-        coupling = state.coupling
-        rot = quat_to_matrix(needle.body_quat)
-        pos = needle.body_pos
-        samples = np.zeros((0, 3))
-        count = self.config.observation.suture_samples
-        if state.suture is not None and count:
-            nodes = state.suture.node_pos
-            samples = nodes[np.round(np.linspace(0, len(nodes) - 1, count)).astype(np.int64)].copy()
-        entries = np.array(self._entries).reshape(-1, 3)
-        exits = np.array(self._exits).reshape(-1, 3)
+        """Snapshot of what the tasks read (copies, :func:`~suture_gym.envs.readout.observables`); clears the
+        recorded events."""
+        faces = (self._build.left_face, self._build.right_face)
+        obs = observables(self.model, self.state, self._entries, self._exits, faces,
+                          self.config.observation.suture_samples)
         self._entries, self._exits = [], []
-        return Observables(
-            time=float(state.time),
-            tip_pos=pos + rot @ needle_model.tip_pos_body,
-            tip_dir=rot @ needle_model.tip_dir_body,
-            needle_normal=rot @ needle_model.plane_normal_body,
-            needle_center=pos + rot @ needle_model.arc_center_body,
-            grip_pos=pos + rot @ needle_model.grip_pos_body,
-            needle_vel=needle.body_vel.copy(),
-            needle_omega=needle.body_omega.copy(),
-            tip_sdist=float(coupling.strand_sdist[0]),
-            punctured=bool(coupling.punctured),
-            path_count=int(coupling.path_count),
-            new_entries=entries,
-            new_exits=exits,
-            tip_force=float(coupling.tip_force),
-            tissue_force=float(coupling.max_force),
-            haptic_wrench=state.needle_reaction.copy(),
-            damaged=bool(coupling.damaged),
-            wound_gap=self.wound_gap(),
-            thread_through=self.thread_through(),
-            suture_samples=samples,
-            diverged=bool(state.diverged),
-        )
+        return obs
 
     # ------------------------------------------------------------------------------------------------------
     # Snapshots and rendering
@@ -429,10 +382,3 @@ class Simulation:
             force_threshold=(self.params or nominal_params(self.config)).puncture_force,
             caption=caption,
         )
-
-
-def _mean_gap(q: np.ndarray, left: np.ndarray, right: np.ndarray) -> float:
-    """Mean y of the right face's particles minus that of the left face's, m (0 when there are none)."""
-    if left.size == 0 or right.size == 0:
-        return 0.0
-    return float(q[right, 1].mean() - q[left, 1].mean())
