@@ -135,4 +135,5 @@ def test_every_id_documents_itself(env_id):
     for row in ("tip_pos_x", "tip_force", "N m"):
         assert row in cls.__doc__
     assert f"{task.MAX_EPISODE_STEPS} steps" in cls.__doc__
+    assert cls.TASK == task.NAME and cls().config.task == task.NAME
     env.close()

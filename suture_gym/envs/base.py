@@ -76,7 +76,8 @@ class SutureEnv(gym.Env):
     """A suturing task on the XPBD simulator (module docstring for spaces, ends and ``info``).
 
     Args:
-        task: a registered task name (``"needle_insert"``, ``"suture_throw"``, ``"wound_closure"``, ...).
+        task: a registered task name (``"needle_insert"``, ``"suture_throw"``, ``"wound_closure"``, ...);
+            default the class's :attr:`TASK`.
         config: None (the task's defaults), an :class:`~suture_gym.envs.config.EnvConfig`, a nested mapping of
             overrides or the path of a YAML file of overrides (``configs/envs/*.yaml``).
         render_mode: None or ``"rgb_array"``.
@@ -86,11 +87,13 @@ class SutureEnv(gym.Env):
     metadata = {"render_modes": ["rgb_array"], "render_fps": 50}
     #: Goal-conditioned variant: a miss never ends its episodes (the relabelled goals may still be reachable).
     _GOAL_CONDITIONED = False
+    #: Task of an env class made for one id (:func:`~suture_gym.envs.docs.env_class`), the default ``task``.
+    TASK = "needle_insert"
 
-    def __init__(self, task: str = "needle_insert", config=None, render_mode: str | None = None,
+    def __init__(self, task: str | None = None, config=None, render_mode: str | None = None,
                  action_mode: str | None = None) -> None:
         super().__init__()
-        cfg = load_config(task, config)
+        cfg = load_config(self.TASK if task is None else task, config)
         if action_mode is not None:
             cfg = apply_overrides(cfg, {"action": {"mode": action_mode}})
         if render_mode is not None and render_mode not in self.metadata["render_modes"]:
@@ -379,7 +382,7 @@ class SutureGoalEnv(SutureEnv):
 
     _GOAL_CONDITIONED = True
 
-    def __init__(self, task: str = "needle_insert", config=None, render_mode: str | None = None,
+    def __init__(self, task: str | None = None, config=None, render_mode: str | None = None,
                  action_mode: str | None = None) -> None:
         super().__init__(task, config, render_mode, action_mode)
         size = self.task_cls.GOAL_SIZE

@@ -129,9 +129,10 @@ def env_docstring(task: type[Task], goal_conditioned: bool) -> str:
 def env_class(task: type[Task], goal_conditioned: bool) -> type:
     """The env class of ``task``'s flat (or goal-conditioned) id: ``<Task>Env`` (``<Task>GoalEnv``), a subclass
     of :class:`~suture_gym.envs.base.SutureEnv` (:class:`~suture_gym.envs.base.SutureGoalEnv`) whose docstring
-    is :func:`env_docstring`."""
+    is :func:`env_docstring` and whose default task is ``task``."""
     from suture_gym.envs.base import SutureEnv, SutureGoalEnv
 
     base = SutureGoalEnv if goal_conditioned else SutureEnv
     name = task.__name__ + ("GoalEnv" if goal_conditioned else "Env")
-    return type(name, (base,), {"__doc__": env_docstring(task, goal_conditioned), "__qualname__": name})
+    namespace = {"__doc__": env_docstring(task, goal_conditioned), "__qualname__": name, "TASK": task.NAME}
+    return type(name, (base,), namespace)
