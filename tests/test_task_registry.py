@@ -120,6 +120,34 @@ def test_the_new_task_passes_check_env_and_steps():
         make_env("touch_entry", goal_conditioned=True)
 
 
+def test_registration_rejects_incomplete_or_clashing_tasks():
+    class NoTerm(TouchEntry):
+        NAME, ENV_ID = "no_term", "SutureGymTest/NoTerm-v0"
+        TERMS = ("touch", "wiggle")
+
+    class NoLimit(TouchEntry):
+        NAME, ENV_ID, MAX_EPISODE_STEPS = "no_limit", "SutureGymTest/NoLimit-v0", 0
+
+    class SameId(TouchEntry):
+        NAME = "same_id"
+
+    class SameName(TouchEntry):
+        ENV_ID = "SutureGymTest/SameName-v0"
+
+    with pytest.raises(ValueError, match="term_<name>"):
+        register_task(NoTerm)
+    with pytest.raises(ValueError, match="MAX_EPISODE_STEPS"):
+        register_task(NoLimit)
+    with pytest.raises(ValueError, match="already registered"):
+        register_task(SameId)
+    with pytest.raises(ValueError, match="already registered"):
+        register_task(SameName)
+    with pytest.raises(ValueError, match="Task subclass"):
+        register_task(dict)
+    assert register_task(TouchEntry) is TouchEntry  # the same class again: nothing happens
+    assert not {"no_term", "no_limit", "same_id"} & set(registered_tasks())
+
+
 @pytest.mark.parametrize("env_id", [*list(ENV_IDS), *list(GOAL_ENV_IDS)])
 def test_every_id_documents_itself(env_id):
     env = gym.make(env_id)

@@ -1,8 +1,13 @@
 """What a task reads (:class:`Observables`), and the machinery shared by the tasks: named reward terms that sum
 exactly to the reward, events (punctures, exits), stitch bookkeeping, success, failure and goals.
 
-Tasks never touch the physics: the simulation facade hands them an :class:`Observables` snapshot (copies of
-plain arrays, SI units) after every env step, and they return the reward terms and the episode flags.
+Tasks never step the physics: the simulation facade hands them an :class:`Observables` snapshot (copies of
+plain arrays, SI units) after every env step, and they return the reward terms and the episode flags. A task is
+the unit of extension: one class declares its env id, time limit and config defaults (``ENV_ID``,
+``MAX_EPISODE_STEPS``, ``CONFIG``, an optional section of its own, ``PARAMS``), its reward terms (one
+``term_<name>(ctx)`` method per name in ``TERMS``, reading the :class:`StepContext` of the step), its config
+check, episode initialisation (``initial_suture``, ``start_phase``) and success; one
+:func:`~suture_gym.envs.registry.register_task` line registers it.
 
 Reward terms (each reported as ``info["reward_<name>"]``; a task uses a subset, in the order of its ``TERMS``;
 ``w_*`` are the :class:`~suture_gym.envs.config.RewardConfig` weights):
