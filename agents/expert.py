@@ -1,23 +1,10 @@
 """Scripted expert for the SutureGym tasks, and demonstration recording.
 
-:class:`ExpertPolicy` reads privileged state through ``env.unwrapped`` (the planned arcs, the task's stitch
-bookkeeping, the needle's grip pose) and acts as a surgeon does with a curved needle:
-
-1. ``turn``: the needle is turned about its own centre along the current stitch's planned circle, the tip
-   angle advancing ``turn_rate`` rad/s from the approach pose until the swage is ``clearance`` rad past the
-   exit (:meth:`~suture_gym.envs.SutureEnv.scripted_action`, the env's wrench toward that pose).
-2. ``pull``: the holder moves along the stitch's pull direction (the last stitch of a running suture's leans
-   ahead, along the suture, :meth:`ExpertPolicy._planned_pull`) at ``pull_speed`` m/s, orientation held
-   (:meth:`~suture_gym.envs.SutureEnv.action_toward`), until the task moves on to the next stitch. A component
-   of the pull that would take the needle tip within ``WORKSPACE_INSET`` of the workspace's walls is dropped,
-   so a long pull (the running suture's last, which tightens every stitch) slides along the wall instead of
-   leaving the workspace.
-3. ``transit`` (next stitch of a running suture): the holder rises ``lift`` m above where it is, crosses to
-   ``lift`` above the next stitch's approach pose, descends to it, and step 1 starts again.
-
-Every action comes from the env's own helpers, so the expert works in both ``wrench`` and ``pose_delta``
-action modes. The start-phase script of :class:`~suture_gym.envs.simulation.Simulation` and the scripted
-surgeon of :mod:`suture_gym.measure.envs` follow the same plan with their own fixed schedules.
+:class:`ExpertPolicy` is the package's scripted surgeon, :class:`~suture_gym.tasks.surgeon.ScriptedSurgeon`
+(turn the needle about its own centre along each planned stitch, pull the thread, carry the needle to the next
+stitch), acting through the env's action space only, so it works in both ``wrench`` and ``pose_delta`` action
+modes. Its default speeds are the task's (``SURGEON_TURN_RATE``, ``SURGEON_PULL_SPEED``). The env's start phases
+and the measurements drive the same surgeon (:mod:`suture_gym.tasks.surgeon`).
 
 Recording: ``python -m agents.expert --env ID --episodes N --out demos.npz`` writes the observations, actions,
 rewards, tip forces and episode boundaries of N seeded expert episodes (see :func:`record`).
@@ -26,133 +13,19 @@ rewards, tip forces and episode boundaries of N seeded expert episodes (see :fun
 from __future__ import annotations
 
 import argparse
-import math
 import sys
 from pathlib import Path
 
 import gymnasium as gym
 import numpy as np
 
-#: Tip-angle advance while turning, rad/s, per task (the env's start-phase script turns at 1 rad/s). The
-#: running suture turns faster: its three stitches (about 7 rad of turning each) must fit, with their transits
-#: and the final tightening pull, into WoundClosure's 25 s time limit.
-TURN_RATES = {"needle_insert": 1.0, "suture_throw": 1.0, "wound_closure": 2.0}
-#: Holder speed while pulling the thread, m/s, per task (WoundClosure's faster for the same reason).
-PULL_SPEEDS = {"needle_insert": 0.02, "suture_throw": 0.02, "wound_closure": 0.04}
-#: How far past the exit the swage is turned before pulling, rad.
-CLEARANCE = 0.3
-#: Closest approach (m) of the needle tip to the workspace's walls that a pull may make.
-WORKSPACE_INSET = 0.002
-#: Height of the transit between stitches above the approach pose, m.
-LIFT = 0.01
-#: Holder speed during the transit, m/s.
-TRANSIT_SPEED = 0.05
-#: Distance (m) at which a transit waypoint counts as reached.
-WAYPOINT_TOLERANCE = 1.0e-3
+from suture_gym.tasks.surgeon import ScriptedSurgeon
 
 
-class ExpertPolicy:
-    """Scripted surgeon: a callable ``obs -> action`` (``(6,) float32`` in [-1, 1]) with :meth:`reset`.
-
-    Args:
-        env: a SutureGym env (any wrappers; ``env.unwrapped`` must be a
-            :class:`~suture_gym.envs.SutureEnv`). The observation passed to ``__call__`` is not read: the
-            expert acts on the env's privileged state.
-        turn_rate: tip-angle advance while turning, rad/s (> 0); default the task's :data:`TURN_RATES`.
-        pull_speed: holder speed while pulling the thread, m/s (> 0); default the task's :data:`PULL_SPEEDS`.
-    """
-
-    def __init__(self, env: gym.Env, turn_rate: float | None = None, pull_speed: float | None = None) -> None:
-        from suture_gym.envs import SutureEnv
-
-        if not isinstance(env.unwrapped, SutureEnv):
-            raise ValueError(f"env must be a SutureGym env, got {type(env.unwrapped).__name__}")
-        task = env.unwrapped.task.NAME
-        turn_rate = TURN_RATES[task] if turn_rate is None else turn_rate
-        pull_speed = PULL_SPEEDS[task] if pull_speed is None else pull_speed
-        if not (math.isfinite(turn_rate) and turn_rate > 0.0):
-            raise ValueError(f"turn_rate must be a positive rad/s, got {turn_rate}")
-        if not (math.isfinite(pull_speed) and pull_speed > 0.0):
-            raise ValueError(f"pull_speed must be a positive m/s, got {pull_speed}")
-        self.env = env.unwrapped
-        self.turn_rate = float(turn_rate)
-        self.pull_speed = float(pull_speed)
-        self.reset()
-
-    def reset(self) -> None:
-        """Forget the episode; the next call plans from the env's state (call after ``env.reset``)."""
-        self.phase = ""
-        self.stitch = -1
-        self.angle = 0.0
-        self.waypoints: list[np.ndarray] = []
-
-    def __call__(self, obs) -> np.ndarray:
-        env = self.env
-        sim = env.sim
-        state = env.task.state
-        if state.stitch != self.stitch:
-            self._start_stitch(state.stitch)
-        arc = sim.arcs[self.stitch]
-        if self.phase == "transit":
-            grip, _ = sim.grip_pose()
-            _, quat = sim.arc_grip_target(arc, self.angle)
-            target = self.waypoints[0]
-            if np.linalg.norm(target - grip) <= WAYPOINT_TOLERANCE:
-                self.waypoints.pop(0)
-                if not self.waypoints:
-                    self.phase = "turn"
-                    return env.scripted_action(self.angle, self.stitch)
-                target = self.waypoints[0]
-            step = TRANSIT_SPEED * sim.control_dt
-            offset = target - grip
-            distance = max(float(np.linalg.norm(offset)), step)
-            return env.action_toward(grip + offset * (step / distance), quat)
-        turn_end = arc.exit_angle + sim.model.needle.shape.arc_angle + CLEARANCE
-        if self.phase == "turn" and self.angle >= turn_end:
-            self.phase = "pull"
-        if self.phase == "turn":
-            self.angle = min(turn_end, self.angle + self.turn_rate * sim.control_dt)
-            return env.scripted_action(self.angle, self.stitch)
-        grip, quat = sim.grip_pose()
-        direction = self._pull_direction(self._planned_pull(self.stitch))
-        return env.action_toward(grip + self.pull_speed * sim.control_dt * direction, quat)
-
-    def _planned_pull(self, stitch: int) -> np.ndarray:
-        """Unit direction (3,) in which to pull stitch ``stitch``'s thread: the arc's
-        :attr:`~suture_gym.tasks.PlannedArc.pull_direction`; the last stitch of a running suture adds the
-        direction in which the suture advanced (from the previous stitch's centre to this one's), which leads
-        the long tightening pull away from the stitches into the free workspace beyond them."""
-        arcs = self.env.sim.arcs
-        direction = arcs[stitch].pull_direction
-        if stitch > 0 and stitch == len(arcs) - 1:
-            advance = arcs[stitch].center - arcs[stitch - 1].center
-            direction = direction + advance / np.linalg.norm(advance)
-        return direction / np.linalg.norm(direction)
-
-    def _pull_direction(self, direction: np.ndarray) -> np.ndarray:
-        """``direction`` (3,) less its components toward workspace walls that the tip is within
-        :data:`WORKSPACE_INSET` of, rescaled to unit length (zero when nothing is left)."""
-        tip = self.env.sim.tip_position()
-        low, high = self.env.sim.workspace
-        kept = np.where(((direction < 0.0) & (tip - low < WORKSPACE_INSET))
-                        | ((direction > 0.0) & (high - tip < WORKSPACE_INSET)), 0.0, direction)
-        norm = float(np.linalg.norm(kept))
-        return kept / norm if norm > 0.0 else kept
-
-    def _start_stitch(self, stitch: int) -> None:
-        """Plan stitch ``stitch``: turn from the approach pose (the first one), else transit there first."""
-        sim = self.env.sim
-        arc = sim.arcs[stitch]
-        self.angle = arc.entry_angle - self.env.config.plan.start_angle
-        if self.stitch < 0:
-            self.phase = "turn"
-        else:
-            grip, _ = sim.grip_pose()
-            start, _ = sim.arc_grip_target(arc, self.angle)
-            high = max(grip[2], start[2]) + LIFT
-            self.waypoints = [np.array([grip[0], grip[1], high]), np.array([start[0], start[1], high]), start]
-            self.phase = "transit"
-        self.stitch = stitch
+class ExpertPolicy(ScriptedSurgeon):
+    """Scripted expert: a callable ``obs -> action`` (``(6,) float32`` in [-1, 1]) with :meth:`reset`; see
+    :class:`~suture_gym.tasks.surgeon.ScriptedSurgeon` for the plan and the arguments (``env``, ``turn_rate``
+    rad/s, ``pull_speed`` m/s)."""
 
 
 def record(env_id: str, episodes: int, out: str | Path, seed: int = 0, env_kwargs: dict | None = None,

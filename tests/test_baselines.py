@@ -15,9 +15,10 @@ pytest.importorskip("sb3_contrib")
 
 import suture_gym  # noqa: E402, F401  (registers the ids)
 from agents.evaluation import evaluate  # noqa: E402
-from agents.expert import PULL_SPEEDS, TURN_RATES, WORKSPACE_INSET, ExpertPolicy, record  # noqa: E402
+from agents.expert import ExpertPolicy, record  # noqa: E402
 from agents.hyperparams import load_hyperparams  # noqa: E402
 from agents.training import train  # noqa: E402
+from suture_gym.tasks.surgeon import WORKSPACE_INSET  # noqa: E402
 
 #: NeedleInsert with seeded tissue, puncture and start-pose randomisation (the default config is nominal).
 RANDOMIZED = Path(__file__).resolve().parents[1] / "configs" / "envs" / "needle_insert_randomized.yaml"
@@ -91,9 +92,9 @@ def test_expert_closes_wound():
 @pytest.mark.parametrize("env_id", ["SutureGym/NeedleInsert-v0", "SutureGym/WoundClosure-v0"])
 def test_expert_speeds_default_per_task_and_reject_bad_values(env_id):
     env = gym.make(env_id)
-    task = env.unwrapped.task.NAME
+    task = env.unwrapped.task
     expert = ExpertPolicy(env)
-    assert (expert.turn_rate, expert.pull_speed) == (TURN_RATES[task], PULL_SPEEDS[task])
+    assert (expert.turn_rate, expert.pull_speed) == (task.SURGEON_TURN_RATE, task.SURGEON_PULL_SPEED)
     assert ExpertPolicy(env, turn_rate=0.5).turn_rate == 0.5
     with pytest.raises(ValueError, match="-1.0"):
         ExpertPolicy(env, pull_speed=-1.0)

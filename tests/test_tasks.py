@@ -2,6 +2,7 @@
 potential shaping, costs, goals), configs, domain randomisation and the observation layout."""
 
 import math
+from dataclasses import fields as dataclass_fields
 from dataclasses import replace
 from pathlib import Path
 
@@ -9,9 +10,8 @@ import numpy as np
 import pytest
 import yaml
 
-from suture_gym.envs import ENV_IDS
+from suture_gym.envs import ENV_IDS, TASK_CLASSES
 from suture_gym.envs.config import (
-    TASKS,
     EnvConfig,
     RewardConfig,
     apply_overrides,
@@ -22,12 +22,19 @@ from suture_gym.envs.config import (
 )
 from suture_gym.envs.randomization import EpisodeParams, nominal_params, sample_params
 from suture_gym.envs.spaces import observation_layout, observation_size, observation_table
-from suture_gym.tasks import TASK_CLASSES, NeedleInsert, Observables, PlannedArc, SutureThrow, WoundClosure
+from suture_gym.sim.coupling import CouplingParams
+from suture_gym.sim.model import TissueMaterial
+from suture_gym.sim.needle import NeedleShape
+from suture_gym.sim.rod import SutureParams
+from suture_gym.sim.solver import Solver
+from suture_gym.tasks import NeedleInsert, Observables, PlannedArc, SutureThrow, WoundClosure
 from suture_gym.tasks.geometry import plan_stitches
 
 R = 0.026 / math.pi  # m, default needle curvature radius
 CONFIGS = Path(__file__).resolve().parents[1] / "configs" / "envs"
 RNG = np.random.default_rng(3)
+#: The package's own tasks (test modules may register more).
+TASKS = ("needle_insert", "suture_throw", "wound_closure")
 
 
 # --- geometry -----------------------------------------------------------------------------------------------
@@ -434,6 +441,55 @@ def test_bad_config_values_are_named(overrides, match):
         load_config("needle_insert", overrides)
 
 
+@pytest.mark.parametrize(
+    "overrides, match",
+    [
+        ({"coupling": {"max_paths": 0}}, "coupling.max_paths"),
+        ({"coupling": {"tip_friction": -0.1}}, "coupling.tip_friction"),
+        ({"needle": {"density": -1.0}}, "needle.density"),
+        ({"needle": {"wire_radius": 0.1}}, "needle.wire_radius"),
+        ({"needle": {"arc": "half"}}, "needle.arc"),
+        ({"suture": {"material": {"youngs_modulus": -1.0}}}, "suture.material.youngs_modulus"),
+        ({"suture": {"node_count": 1}}, "suture.node_count"),
+        ({"solver": {"rod_tolerance": -1.0}}, "solver.rod_tolerance"),
+        ({"tissue": {"poisson_ratio": 0.7}}, "tissue.poisson_ratio"),
+    ],
+)
+def test_bad_simulator_parameters_are_named_by_their_key(overrides, match):
+    with pytest.raises(ValueError, match=match):
+        load_config("needle_insert", overrides)
+
+
+@pytest.mark.parametrize("section, sim_cls", [("tissue", TissueMaterial), ("needle", NeedleShape),
+                                               ("suture", SutureParams), ("coupling", CouplingParams),
+                                               ("solver", Solver)])
+def test_every_simulator_parameter_is_a_config_key_with_one_default(section, sim_cls):
+    """The env section is the simulator's dataclass: all its fields are keys, and a default the env does not
+    set on purpose (env scale) is the simulator's own."""
+    cfg = default_config("needle_insert")
+    values = config_to_dict(getattr(cfg, section))
+    env_scale = {"tissue": {"youngs_modulus", "poisson_ratio"}, "suture": {"length", "node_count"},
+                 "coupling": {"puncture_force", "tear_force", "needle_axial_friction"}, "solver": {"max_speed"}}
+    sim_default = sim_cls()
+    for f in dataclass_fields(sim_cls):
+        assert f.name in values
+        if f.name not in env_scale.get(section, ()):
+            assert getattr(getattr(cfg, section), f.name) == getattr(sim_default, f.name), f.name
+
+
+def test_yaml_simulator_parameters_reach_the_simulation():
+    from suture_gym.envs.simulation import Simulation
+
+    cfg = load_config("suture_throw", {"coupling": {"tip_friction": 0.5, "max_paths": 8},
+                                       "suture": {"damping": 2.0, "material": {"youngs_modulus": 1.0e9}},
+                                       "solver": {"rod_iterations": 3}, "needle": {"density": 8000.0}})
+    sim = Simulation(cfg)
+    params = sim.model.coupling.params
+    assert (params.tip_friction, params.max_paths) == (0.5, 8)
+    assert sim.suture_params.damping == 2.0 and sim.suture_params.material.youngs_modulus == 1.0e9
+    assert sim.solver.rod_iterations == 3 and sim.model.needle.shape.density == 8000.0
+
+
 def test_config_task_mismatch_and_wound_requirements():
     with pytest.raises(ValueError, match="task"):
         load_config("needle_insert", {"task": "suture_throw"})
@@ -509,6 +565,8 @@ def test_observation_table_covers_every_index_once(task, extra):
 
 
 def test_task_classes_are_registered_by_name():
-    assert set(TASK_CLASSES) == set(TASKS)
-    for name, cls in TASK_CLASSES.items():
-        assert cls.NAME == name and cls.TERMS[-2:] == ("tissue_force", "action") and "success" in cls.TERMS
+    assert set(TASKS) <= set(TASK_CLASSES)
+    for name in TASKS:
+        cls = TASK_CLASSES[name]
+        assert cls.NAME == name and ENV_IDS[cls.ENV_ID] == name
+        assert cls.TERMS[-2:] == ("tissue_force", "action") and "success" in cls.TERMS

@@ -35,10 +35,11 @@ import numpy as np
 
 from suture_gym.envs.config import EnvConfig, apply_overrides, load_config
 from suture_gym.envs.randomization import EpisodeParams, nominal_params, sample_params
+from suture_gym.envs.registry import task_class
 from suture_gym.envs.simulation import Simulation, SimulationSnapshot
 from suture_gym.envs.spaces import SDIST_CLIP, ObsField, observation_layout, observation_size
 from suture_gym.sim.quat import quat_conj, quat_from_rotation_vector, quat_mul, quat_normalize, quat_rotation_vector
-from suture_gym.tasks import TASK_CLASSES, Observables, Task, TaskState
+from suture_gym.tasks import Observables, Task, TaskState
 
 #: Keys ``reset(options=...)`` accepts.
 RESET_OPTIONS = ("phase", "params")
@@ -75,7 +76,8 @@ class SutureEnv(gym.Env):
     """A suturing task on the XPBD simulator (module docstring for spaces, ends and ``info``).
 
     Args:
-        task: ``"needle_insert"``, ``"suture_throw"`` or ``"wound_closure"``.
+        task: a registered task name (``"needle_insert"``, ``"suture_throw"``, ``"wound_closure"``, ...);
+            default the class's :attr:`TASK`.
         config: None (the task's defaults), an :class:`~suture_gym.envs.config.EnvConfig`, a nested mapping of
             overrides or the path of a YAML file of overrides (``configs/envs/*.yaml``).
         render_mode: None or ``"rgb_array"``.
@@ -85,11 +87,13 @@ class SutureEnv(gym.Env):
     metadata = {"render_modes": ["rgb_array"], "render_fps": 50}
     #: Goal-conditioned variant: a miss never ends its episodes (the relabelled goals may still be reachable).
     _GOAL_CONDITIONED = False
+    #: Task of an env class made for one id (:func:`~suture_gym.envs.docs.env_class`), the default ``task``.
+    TASK = "needle_insert"
 
-    def __init__(self, task: str = "needle_insert", config=None, render_mode: str | None = None,
+    def __init__(self, task: str | None = None, config=None, render_mode: str | None = None,
                  action_mode: str | None = None) -> None:
         super().__init__()
-        cfg = load_config(task, config)
+        cfg = load_config(self.TASK if task is None else task, config)
         if action_mode is not None:
             cfg = apply_overrides(cfg, {"action": {"mode": action_mode}})
         if render_mode is not None and render_mode not in self.metadata["render_modes"]:
@@ -97,7 +101,7 @@ class SutureEnv(gym.Env):
         self.config: EnvConfig = cfg
         self.render_mode = render_mode
         self.sim = Simulation(cfg)
-        self.task_cls: type[Task] = TASK_CLASSES[cfg.task]
+        self.task_cls: type[Task] = task_class(cfg.task)
         self.task: Task = self._make_task()
         self.layout: tuple[ObsField, ...] = observation_layout(cfg)
         self.obs_index: dict[str, slice] = {f.name: f.slice for f in self.layout}
@@ -273,6 +277,7 @@ class SutureEnv(gym.Env):
             gap_rest=self.sim.gap_rest,
             end_on_tear=cfg.termination.end_on_tear,
             end_on_miss=cfg.termination.end_on_miss and not self._GOAL_CONDITIONED,
+            params=cfg.task_params,
         )
 
     @staticmethod
@@ -377,7 +382,7 @@ class SutureGoalEnv(SutureEnv):
 
     _GOAL_CONDITIONED = True
 
-    def __init__(self, task: str = "needle_insert", config=None, render_mode: str | None = None,
+    def __init__(self, task: str | None = None, config=None, render_mode: str | None = None,
                  action_mode: str | None = None) -> None:
         super().__init__(task, config, render_mode, action_mode)
         size = self.task_cls.GOAL_SIZE

@@ -1,6 +1,13 @@
 """Typed configuration of the suturing environments; YAML files only override the typed defaults.
 
-An :class:`EnvConfig` is a tree of frozen dataclasses. :func:`default_config` gives the defaults of a task (the
+An :class:`EnvConfig` is a tree of frozen dataclasses. The physical sections are the simulator's own parameter
+dataclasses (``tissue`` is a :class:`~suture_gym.sim.model.TissueMaterial`, ``needle`` a
+:class:`~suture_gym.sim.needle.NeedleShape`, ``suture`` a :class:`~suture_gym.sim.rod.SutureParams`,
+``coupling`` a :class:`~suture_gym.sim.coupling.CouplingParams`, ``solver`` a
+:class:`~suture_gym.sim.solver.Solver`, subclassed with the few env-scale defaults that differ and the env-only
+fields), so every simulator parameter is settable from YAML and has one default.
+
+:func:`default_config` gives the defaults of a task (the
 values the registered ids use); :func:`load_config` applies overrides from a YAML file, a mapping or another
 config on top of them. Every key of an override must name a field: an unknown key raises ValueError naming its
 dotted path (``reward.puncture_bonus``), so a typo never passes silently. :func:`config_to_dict` gives the
@@ -14,13 +21,20 @@ from __future__ import annotations
 import functools
 import math
 import os
+import re
+import types
 import typing
 from dataclasses import dataclass, field, fields, is_dataclass, replace
 from pathlib import Path
 from typing import Any, ClassVar
 
-#: Task names, in the order of the registered ids.
-TASKS: tuple[str, ...] = ("needle_insert", "suture_throw", "wound_closure")
+from suture_gym.envs.registry import task_class
+from suture_gym.sim.coupling import CouplingParams
+from suture_gym.sim.model import TissueMaterial
+from suture_gym.sim.needle import NeedleShape, VirtualCoupling
+from suture_gym.sim.rod import SutureParams
+from suture_gym.sim.solver import Solver
+
 #: Action modes: a wrench on the needle holder, or a pose change of the holder through the virtual coupling.
 ACTION_MODES: tuple[str, ...] = ("wrench", "pose_delta")
 #: Scene kinds: one tissue pad, or two bars with a wound gap between them.
@@ -74,9 +88,16 @@ class _Section:
         """Raise ValueError naming ``<path>.<field>`` for the first invalid field; every section defines it."""
 
 
+def sim_fields(section: Any, sim_cls: type) -> dict:
+    """The values of ``section`` for the fields of the simulator dataclass ``sim_cls`` (its base class), as
+    keyword arguments of ``sim_cls``."""
+    return {f.name: getattr(section, f.name) for f in fields(sim_cls) if f.init}
+
+
 @dataclass(frozen=True)
-class TissueConfig(_Section):
-    """Tissue material (stable neo-Hookean, :class:`~suture_gym.sim.model.TissueMaterial`).
+class TissueConfig(TissueMaterial):
+    """Tissue material: the simulator's :class:`~suture_gym.sim.model.TissueMaterial` itself (its fields, units
+    and checks), with the environments' defaults for the fields below; the others keep the simulator's.
 
     Default 3 kPa, three times the paper's 1 kPa: an 8 mm pad of it sags 0.1 mm under its own weight. It is
     the stiffest material the solver keeps at rest at the default substep (1 ms) and cell size (2 mm): with one
@@ -86,18 +107,8 @@ class TissueConfig(_Section):
     0.5 ms) or larger cells.
     """
 
-    SECTION: ClassVar[str] = "tissue"
-
     youngs_modulus: float = 3.0e3  # Pa
     poisson_ratio: float = 0.45  # dimensionless, [0, 0.5]
-    density: float = 1000.0  # kg/m^3
-    damping: float = 10.0  # 1/s, mass-proportional velocity damping
-
-    def validate(self, path: str) -> None:
-        _real(f"{path}.youngs_modulus", self.youngs_modulus, low=0.0, strict_low=True)
-        _real(f"{path}.poisson_ratio", self.poisson_ratio, low=0.0, high=0.5)
-        _real(f"{path}.density", self.density, low=0.0, strict_low=True)
-        _real(f"{path}.damping", self.damping, low=0.0)
 
 
 @dataclass(frozen=True)
@@ -131,59 +142,53 @@ class SceneConfig(_Section):
 
 
 @dataclass(frozen=True)
-class NeedleConfig(_Section):
-    """The curved needle and its holder (:class:`~suture_gym.sim.needle.NeedleShape`)."""
+class NeedleConfig(NeedleShape):
+    """The curved needle and its holder: the simulator's :class:`~suture_gym.sim.needle.NeedleShape` itself
+    (its fields, units, defaults and checks) plus the body's damping and gravity compensation of
+    :meth:`~suture_gym.sim.needle.NeedleModel.from_shape`."""
 
-    SECTION: ClassVar[str] = "needle"
-
-    arc: str = "1/2"  # preset: "1/4", "3/8", "1/2", "5/8"
-    curvature_radius: float = 0.026 / math.pi  # m (26 mm half-circle needle)
-    wire_radius: float = 3.0e-4  # m
-    holder_mass: float = 0.02  # kg, effective mass of the holder at the grip
-    holder_inertia: float = 1.0e-6  # kg m^2, isotropic, about the grip
-    grip_fraction: float = 1.0 / 3.0  # of the arc length, from the swage
-    node_count: int = 30  # collision and coupling nodes along the arc
     linear_damping: float = 5.0  # 1/s, velocity damping of the needle body
     angular_damping: float = 5.0  # 1/s
     gravity_compensation: bool = True  # the haptic device carries the needle's weight
 
-    def validate(self, path: str) -> None:
-        _choice(f"{path}.arc", self.arc, ("1/4", "3/8", "1/2", "5/8"))
-        _real(f"{path}.curvature_radius", self.curvature_radius, low=0.0, strict_low=True)
-        _real(f"{path}.wire_radius", self.wire_radius, low=0.0, strict_low=True, high=self.curvature_radius,
-              strict_high=True)
-        _real(f"{path}.holder_mass", self.holder_mass, low=0.0)
-        _real(f"{path}.holder_inertia", self.holder_inertia, low=0.0)
-        _real(f"{path}.grip_fraction", self.grip_fraction, low=0.0, high=1.0)
-        _count(f"{path}.node_count", self.node_count, 2)
-        _real(f"{path}.linear_damping", self.linear_damping, low=0.0)
-        _real(f"{path}.angular_damping", self.angular_damping, low=0.0)
+    def __post_init__(self) -> None:
+        super().__post_init__()
+        _real("needle.linear_damping", self.linear_damping, low=0.0)
+        _real("needle.angular_damping", self.angular_damping, low=0.0)
         if not isinstance(self.gravity_compensation, bool):
-            _fail(f"{path}.gravity_compensation", f"must be true or false, got {self.gravity_compensation!r}")
+            _fail("needle.gravity_compensation", f"must be true or false, got {self.gravity_compensation!r}")
+
+    def shape(self) -> NeedleShape:
+        """The :class:`~suture_gym.sim.needle.NeedleShape` of these fields."""
+        return NeedleShape(**sim_fields(self, NeedleShape))
 
 
 @dataclass(frozen=True)
-class SutureConfig(_Section):
-    """The suture thread (:class:`~suture_gym.sim.rod.SutureParams`); ``node_count = 0`` means no thread."""
-
-    SECTION: ClassVar[str] = "suture"
+class SutureConfig(SutureParams):
+    """The suture thread: the simulator's :class:`~suture_gym.sim.rod.SutureParams` itself (its fields, units
+    and checks) with the environments' defaults below, where ``node_count = 0`` means no thread, plus a
+    stopper knot."""
 
     length: float = 0.03  # m
     node_count: int = 0  # nodes along the thread (0: needle only)
-    radius: float = 1.0e-4  # m (3-0 suture)
     knot_tail: float = 0.0  # m of thread beyond a stopper knot tied near its free end (0: no knot)
 
-    def validate(self, path: str) -> None:
-        _real(f"{path}.length", self.length, low=0.0, strict_low=True)
+    def __post_init__(self) -> None:
         if self.node_count != 0:
-            _count(f"{path}.node_count", self.node_count, 2)
-        _real(f"{path}.radius", self.radius, low=0.0, strict_low=True)
-        _real(f"{path}.knot_tail", self.knot_tail, low=0.0, high=self.length, strict_high=True)
+            super().__post_init__()
+        else:  # no thread: the other fields must still be valid for when one is added
+            SutureParams(**{**sim_fields(self, SutureParams), "node_count": 2})
+        _real("suture.knot_tail", self.knot_tail, low=0.0, high=self.length, strict_high=True)
+
+    def params(self) -> SutureParams | None:
+        """The :class:`~suture_gym.sim.rod.SutureParams` of these fields (None without a thread)."""
+        return SutureParams(**sim_fields(self, SutureParams)) if self.node_count else None
 
 
 @dataclass(frozen=True)
-class CouplingConfig(_Section):
-    """Needle/suture-tissue interaction (:class:`~suture_gym.sim.coupling.CouplingParams`).
+class CouplingConfig(CouplingParams):
+    """Needle/suture-tissue interaction: the simulator's :class:`~suture_gym.sim.coupling.CouplingParams`
+    itself (all its fields, units and checks), with the environments' defaults for the three below.
 
     Forces scale with the tissue's stiffness: on the 3 kPa default tissue the scripted surgeon's needle needs
     3-11 mN while it cuts along the plan, so the puncture threshold is 5 mN (a puncture lands within about
@@ -192,40 +197,37 @@ class CouplingConfig(_Section):
     1 MPa tissue: 1.5 N to puncture, 30 N to tear.
     """
 
-    SECTION: ClassVar[str] = "coupling"
-
     puncture_force: float = 0.005  # N, tip force that pierces the surface
     tear_force: float = 0.1  # N, coupling force that tears the tissue (ends the episode)
-    resistance_eps: float = 3.0e-4  # m, resistance layer of the signed distance
-    path_spacing_min: float = 1.2e-3  # m, l of paper section 4.3
-    path_spacing_max: float = 1.7e-3  # m, h
     needle_axial_friction: float = 1.5  # N/m of needle inside the tissue
 
-    def validate(self, path: str) -> None:
-        for name in ("puncture_force", "tear_force", "resistance_eps", "path_spacing_min", "path_spacing_max"):
-            _real(f"{path}.{name}", getattr(self, name), low=0.0, strict_low=True)
-        _real(f"{path}.needle_axial_friction", self.needle_axial_friction, low=0.0)
-        if self.path_spacing_min > self.path_spacing_max:
-            _fail(f"{path}.path_spacing_min", f"({self.path_spacing_min}) must not exceed path_spacing_max "
-                  f"({self.path_spacing_max})")
+    def params(self, puncture_force: float | None = None) -> CouplingParams:
+        """The :class:`~suture_gym.sim.coupling.CouplingParams` of these fields, with ``puncture_force`` (N)
+        replaced when given (a randomised episode's)."""
+        values = sim_fields(self, CouplingParams)
+        if puncture_force is not None:
+            values["puncture_force"] = puncture_force
+        return CouplingParams(**values)
 
 
 @dataclass(frozen=True)
-class SolverConfig(_Section):
-    """Time stepping: one env step is ``substeps`` solver substeps of ``dt``."""
+class SolverConfig(Solver):
+    """Time stepping: the simulator's :class:`~suture_gym.sim.solver.Solver` itself (its fields, units and
+    checks; ``max_speed`` tighter here), plus the substep ``dt``: one env step is ``substeps`` solver substeps
+    of ``dt``."""
 
-    SECTION: ClassVar[str] = "solver"
-
+    max_speed: float = 20.0  # m/s, divergence threshold
     dt: float = 1.0e-3  # s, substep
     substeps: int = 5  # substeps per env step
-    iterations: int = 1  # Gauss-Seidel sweeps per substep
-    max_speed: float = 20.0  # m/s, divergence threshold
 
-    def validate(self, path: str) -> None:
-        _real(f"{path}.dt", self.dt, low=0.0, strict_low=True)
-        _count(f"{path}.substeps", self.substeps, 1)
-        _count(f"{path}.iterations", self.iterations, 1)
-        _real(f"{path}.max_speed", self.max_speed, low=0.0, strict_low=True)
+    def __post_init__(self) -> None:
+        super().__post_init__()
+        _real("solver.dt", self.dt, low=0.0, strict_low=True)
+        _count("solver.substeps", self.substeps, 1)
+
+    def solver(self) -> Solver:
+        """The :class:`~suture_gym.sim.solver.Solver` of these fields."""
+        return Solver(**sim_fields(self, Solver))
 
 
 @dataclass(frozen=True)
@@ -248,10 +250,11 @@ class ActionConfig(_Section):
     max_torque: float = 2.0e-4  # N m per component
     max_translation: float = 2.0e-4  # m per env step and component (pose_delta)
     max_rotation: float = 0.03  # rad per env step and component (pose_delta)
-    coupling_linear_stiffness: float = 500.0  # N/m (pose_delta)
-    coupling_linear_damping: float = 6.0  # N s/m
-    coupling_angular_stiffness: float = 0.025  # N m/rad
-    coupling_angular_damping: float = 3.0e-4  # N m s/rad
+    # the virtual coupling (pose_delta, and the scripted surgeon): VirtualCoupling's fields and defaults
+    coupling_linear_stiffness: float = VirtualCoupling.linear_stiffness  # N/m
+    coupling_linear_damping: float = VirtualCoupling.linear_damping  # N s/m
+    coupling_angular_stiffness: float = VirtualCoupling.angular_stiffness  # N m/rad
+    coupling_angular_damping: float = VirtualCoupling.angular_damping  # N m s/rad
 
     def validate(self, path: str) -> None:
         _choice(f"{path}.mode", self.mode, ACTION_MODES)
@@ -412,44 +415,29 @@ class EnvConfig:
     termination: TerminationConfig = field(default_factory=TerminationConfig)
     observation: ObservationConfig = field(default_factory=ObservationConfig)
     render: RenderConfig = field(default_factory=RenderConfig)
+    #: The task's own section (an instance of its class's ``PARAMS``; None: its defaults, or none).
+    task_params: Any = None
 
     def __post_init__(self) -> None:
-        _choice("task", self.task, TASKS)
+        cls = task_class(self.task)
+        if cls.PARAMS is None:
+            if self.task_params is not None:
+                _fail("task_params", f"must be empty: task {self.task!r} has no parameters of its own")
+        elif self.task_params is None:
+            object.__setattr__(self, "task_params", cls.PARAMS())
+        elif type(self.task_params) is not cls.PARAMS:
+            _fail("task_params", f"must be a {cls.PARAMS.__name__}, got {type(self.task_params).__name__}")
         for f in fields(self):
             section = getattr(self, f.name)
-            if f.name != "task" and type(section) is not _field_types(EnvConfig)[f.name]:
+            if f.name not in ("task", "task_params") and type(section) is not _field_types(EnvConfig)[f.name]:
                 _fail(f.name, f"must be a {_field_types(EnvConfig)[f.name].__name__}, got {type(section).__name__}")
-        if self.scene.kind == "pad" and self.task != "needle_insert":
-            _fail("scene.kind", f"must be 'wound' for task {self.task!r}, got 'pad'")
-        if self.task != "needle_insert" and self.suture.node_count == 0:
-            _fail("suture.node_count", f"must be >= 2 for task {self.task!r} (the thread is pulled through)")
-
-
-#: Per-task differences from the typed defaults above (which are NeedleInsert's).
-_TASK_DEFAULTS: dict[str, dict] = {
-    "needle_insert": {},
-    "suture_throw": {
-        "task": "suture_throw",
-        "scene": {"kind": "wound", "size": (0.012, 0.012, 0.008)},
-        "suture": {"node_count": 31, "length": 0.03},
-        "observation": {"suture_samples": 4},
-        "reward": {"failure": 20.0},
-    },
-    "wound_closure": {
-        "task": "wound_closure",
-        "scene": {"kind": "wound", "size": (0.03, 0.012, 0.008)},
-        "suture": {"node_count": 86, "length": 0.085, "knot_tail": 0.008},
-        "plan": {"stitches": 3},
-        "observation": {"suture_samples": 4},
-        "reward": {"failure": 30.0},
-    },
-}
+        cls.check_config(self)
 
 
 def default_config(task: str) -> EnvConfig:
-    """The typed defaults of ``task`` (one of :data:`TASKS`): what the registered ids use."""
-    _choice("task", task, TASKS)
-    return apply_overrides(EnvConfig(), _TASK_DEFAULTS[task])
+    """The defaults of the registered ``task``: the typed defaults overridden by the task class's ``CONFIG``
+    (what the registered ids use)."""
+    return apply_overrides(EnvConfig(), {"task": task, **task_class(task).CONFIG})
 
 
 @functools.cache
@@ -466,6 +454,8 @@ def _coerce(path: str, value: Any, kind: Any, current: Any) -> Any:
             _fail(path, f"must be a mapping of {kind.__name__} fields, got {type(value).__name__}")
         return _merge(path + ".", current, value)
     origin = typing.get_origin(kind)
+    if origin in (typing.Union, types.UnionType):
+        return _coerce_union(path, value, typing.get_args(kind))
     if origin is tuple:
         args = typing.get_args(kind)
         if not isinstance(value, (list, tuple)) or len(value) != len(args):
@@ -490,6 +480,28 @@ def _coerce(path: str, value: Any, kind: Any, current: Any) -> Any:
     raise TypeError(f"{path}: unsupported config field type {kind!r}")
 
 
+def _coerce_union(path: str, value: Any, kinds: tuple) -> Any:
+    """``value`` as the first of ``kinds`` it converts to (ValueError naming ``path`` if none)."""
+    for kind in kinds:
+        try:
+            return _coerce(path, value, kind, None)
+        except ValueError:
+            continue
+    _fail(path, f"must be one of {[getattr(k, '__name__', str(k)) for k in kinds]}, got {value!r}")
+
+
+def _named(prefix: str, cls: type, error: ValueError, changed) -> ValueError:
+    """``error`` raised by a section's own checks (a simulator dataclass's), renamed after its dotted key:
+    ``<prefix><field>: <message>`` with the field the message names, the ``changed`` ones first."""
+    message = str(error)
+    if not prefix or message.startswith(prefix) or message.startswith("unknown config key"):
+        return error
+    candidates = [*changed, *(f.name for f in fields(cls) if f.name not in changed)]
+    named = [name for name in candidates if re.search(rf"\b{name}\b", message)]
+    key = prefix + named[0] if named else prefix.rstrip(".")
+    return ValueError(f"{key}: {message}")
+
+
 def _merge(prefix: str, base: Any, overrides: dict) -> Any:
     """A copy of dataclass ``base`` with ``overrides`` applied; unknown keys raise ValueError naming them."""
     types = _field_types(type(base))
@@ -497,8 +509,34 @@ def _merge(prefix: str, base: Any, overrides: dict) -> Any:
     if unknown:
         names = ", ".join(f"'{prefix}{k}'" for k in unknown)
         raise ValueError(f"unknown config key(s) {names}; known keys here: {sorted(types)}")
-    changes = {key: _coerce(prefix + key, value, types[key], getattr(base, key)) for key, value in overrides.items()}
-    return replace(base, **changes)
+    changes = {key: _coerce(prefix + key, value, types[key], getattr(base, key))
+               for key, value in overrides.items() if key != "task_params"}
+    if isinstance(base, EnvConfig):
+        changes["task_params"] = _task_params(base, changes.get("task", base.task), overrides)
+    try:
+        return replace(base, **changes)
+    except ValueError as error:
+        raise _named(prefix, type(base), error, list(overrides)) from None
+
+
+def _task_params(base: EnvConfig, task: str, overrides: dict) -> Any:
+    """The ``task_params`` section of ``task`` after ``overrides``: the task class's ``PARAMS`` (kept from
+    ``base`` when the task does not change) with ``overrides["task_params"]`` merged in."""
+    params_cls = task_class(task).PARAMS
+    value = overrides.get("task_params")
+    if params_cls is None:
+        if value:
+            _fail("task_params", f"must be empty: task {task!r} has no parameters of its own")
+        return None
+    current = base.task_params if task == base.task and base.task_params is not None else params_cls()
+    if value is None:
+        return current
+    if not isinstance(value, dict):
+        _fail("task_params", f"must be a mapping of {params_cls.__name__} fields, got {type(value).__name__}")
+    try:
+        return _merge("task_params.", current, value)
+    except ValueError as error:
+        raise ValueError(f"task_params ({task}): {error}") from None
 
 
 def apply_overrides(config: EnvConfig, overrides: dict) -> EnvConfig:
@@ -525,7 +563,7 @@ def load_config(task: str, source: EnvConfig | dict | str | os.PathLike | None =
     """The config of ``task``: its defaults, overridden by ``source``.
 
     Args:
-        task: one of :data:`TASKS`.
+        task: a registered task (:func:`~suture_gym.envs.registry.registered_tasks`).
         source: None (defaults), an :class:`EnvConfig` (used as is; its ``task`` must match), a nested mapping
             or the path of a YAML file holding one. A ``task`` key, if present, must name ``task``.
 
@@ -572,7 +610,6 @@ def save_config(config: EnvConfig, path: str | os.PathLike) -> None:
 
 __all__ = [
     "ACTION_MODES",
-    "TASKS",
     "ActionConfig",
     "CouplingConfig",
     "EnvConfig",
@@ -593,4 +630,5 @@ __all__ = [
     "load_config",
     "read_yaml",
     "save_config",
+    "sim_fields",
 ]

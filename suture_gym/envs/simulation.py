@@ -7,23 +7,19 @@ Scene (all SI, gravity along -z, the tissue on a rigid base at ``z = 0``):
   bottom faces pinned (and, for the bars, both end faces, as in paper Fig. 5);
 * the curved needle (:mod:`suture_gym.sim.needle`), its plane ``x = const`` across the pad or the wound, placed
   with its tip on the first planned circle ``plan.start_angle`` before the entry point;
-* the suture (:mod:`suture_gym.sim.rod`) on the swage, if ``suture.node_count > 0``: lying straight along
-  ``(0, -1, 1)`` from the swage (up and back, clear of the needle), or, for ``wound_closure``, laid from the
-  swage up and back (along ``(0, -1, 1)``) and down to a free end just outside the first entry point in two
-  straight legs; ``suture.knot_tail`` from that end a stopper knot (wound_closure's running suture) stops the
-  thread at the first entry, so pulling it draws the wound together;
+* the suture (:mod:`suture_gym.sim.rod`) on the swage, if ``suture.node_count > 0``, laid out by the task's
+  :meth:`~suture_gym.tasks.Task.initial_suture` hook; ``suture.knot_tail`` from its free end a stopper knot
+  (wound_closure's running suture) stops the thread at the first entry, so pulling it draws the wound together;
 * the coupling of needle and suture with the tissue (:mod:`suture_gym.sim.coupling`).
 
 One env step is ``solver.substeps`` substeps of ``solver.dt``. Between substeps the facade records the events
-the tasks need: each puncture (its entry point) and each exit of the tip (where it came out). Event points are
-material points: the access point's triangle and barycentric coordinates evaluated in the tissue's rest shape,
-so "where the needle went in" does not depend on how far the needle had dented the surface at that moment, and
-compares directly with the planned points (defined on the rest shape).
+the tasks need: each puncture (its entry point) and each exit of the tip (where it came out), as material points
+(:mod:`suture_gym.envs.readout`, the one place that reads the simulator's state for the tasks).
 
-Start phases (``reset(..., phase)``) past ``approach`` are reached by a scripted surgeon: a virtual coupling
-turns the needle about its own centre along the planned arc (and, for ``first_bite``, pulls the thread), from
-the approach state of the same parameters; the result is cached per parameters, so repeated resets of an
-unrandomised env cost one state copy.
+Start phases (``reset(..., phase)``) past the task's first are reached by the task's
+:meth:`~suture_gym.tasks.Task.start_phase` hook (by default the scripted surgeon of
+:mod:`suture_gym.tasks.surgeon`), from the approach state of the same parameters; the result is cached per
+parameters, so repeated resets of an unrandomised env cost one state copy.
 """
 
 from __future__ import annotations
@@ -34,86 +30,38 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from suture_gym.envs.config import EnvConfig
+from suture_gym.envs.config import EnvConfig, sim_fields
 from suture_gym.envs.randomization import EpisodeParams, nominal_params
+from suture_gym.envs.readout import coupling_mark, mean_gap, observables, substep_events, thread_through
+from suture_gym.envs.registry import task_class
 from suture_gym.render.scene import RenderFrame
-from suture_gym.sim.coupling import CouplingModel, CouplingParams, access_point
-from suture_gym.sim.mesh import box_tet_grid
-from suture_gym.sim.model import Control, Model, State, TissueMaterial, TissueModel
+from suture_gym.sim.model import Control, Model, State, TissueMaterial
 from suture_gym.sim.needle import (
     NeedleModel,
-    NeedleShape,
     NeedleState,
     VirtualCoupling,
-    needle_point_velocity,
     needle_point_world,
 )
 from suture_gym.sim.quat import (
-    quat_conj,
     quat_from_rotation_vector,
-    quat_from_two_vectors,
     quat_mul,
     quat_normalize,
     quat_rotate,
-    quat_rotation_vector,
     quat_to_matrix,
 )
-from suture_gym.sim.rod import RodModel, RodState, SutureParams
-from suture_gym.sim.scenes import STANDARD_GRAVITY, two_bar_wound
-from suture_gym.sim.solver import Solver
+from suture_gym.sim.rod import RodModel
+from suture_gym.sim.scenes import (
+    STANDARD_GRAVITY,
+    Scene,
+    assemble,
+    needle_circle_pose,
+    suturing_pad,
+    two_bar_wound,
+)
 from suture_gym.tasks import Observables, PlannedArc, plan_stitches
 
 #: Most built scenes and most scripted-phase start states kept per simulation.
 CACHE_SIZE = 4
-#: Turn rate of the scripted surgeon, rad/s.
-SCRIPT_TURN_RATE = 1.0
-#: How far (rad) the scripted surgeon turns the tip past the exit (``exited``), and the swage past the exit
-#: (``first_bite``).
-SCRIPT_CLEARANCE = 0.3
-#: Force (N) and damping (N s/m) with which the scripted surgeon pulls the thread once the needle is out, and
-#: the longest it pulls (s).
-SCRIPT_PULL_FORCE = 0.03
-SCRIPT_PULL_DAMPING = 2.0
-SCRIPT_PULL_TIME = 3.0
-#: Distance outside the first entry at which the wound-closure thread's free end starts, m.
-TAIL_OFFSET = 8.0e-3
-
-
-def _quat_from_matrix(r: np.ndarray) -> np.ndarray:
-    """Unit quaternion (w, x, y, z) of the rotation matrix ``r`` (3, 3), with ``w >= 0``."""
-    m = np.asarray(r, dtype=np.float64)
-    trace = m[0, 0] + m[1, 1] + m[2, 2]
-    if trace > 0.0:
-        s = 2.0 * math.sqrt(1.0 + trace)
-        q = np.array([0.25 * s, (m[2, 1] - m[1, 2]) / s, (m[0, 2] - m[2, 0]) / s, (m[1, 0] - m[0, 1]) / s])
-    else:
-        i = int(np.argmax([m[0, 0], m[1, 1], m[2, 2]]))
-        j, k = (i + 1) % 3, (i + 2) % 3
-        s = 2.0 * math.sqrt(1.0 + m[i, i] - m[j, j] - m[k, k])
-        q = np.zeros(4)
-        q[0] = (m[k, j] - m[j, k]) / s
-        q[1 + i] = 0.25 * s
-        q[1 + j] = (m[j, i] + m[i, j]) / s
-        q[1 + k] = (m[k, i] + m[i, k]) / s
-    q /= np.linalg.norm(q)
-    return q if q[0] >= 0.0 else -q
-
-
-def needle_pose_on_arc(needle: NeedleModel, arc: PlannedArc, tip_angle: float) -> tuple[np.ndarray, np.ndarray]:
-    """Pose ``(body_pos (3,) m, body_quat (4,))`` of ``needle`` lying on ``arc``'s circle with its tip at
-    ``tip_angle`` (rad, the arc's angle convention) and its body trailing behind the tip.
-
-    The needle's shape frame (circle in its x-y plane, normal +z, tip at polar angle ``tau``) maps to the arc:
-    shape x -> ``cos(a) u + sin(a) v``, shape y -> ``sin(a) u - cos(a) v``, shape z -> ``-axis``, with
-    ``a = tip_angle + tau``, so shape angle ``theta`` lands at arc angle ``a - theta``.
-    """
-    a = tip_angle + needle.shape.tip_angle
-    e1 = math.cos(a) * arc.u + math.sin(a) * arc.v
-    e2 = math.sin(a) * arc.u - math.cos(a) * arc.v
-    rot = np.stack([e1, e2, -arc.axis], axis=1)
-    quat = _quat_from_matrix(rot)
-    return arc.center - quat_to_matrix(quat) @ needle.arc_center_body, quat
-
 
 @dataclass(frozen=True)
 class _Build:
@@ -151,30 +99,20 @@ class Simulation:
 
     def __init__(self, config: EnvConfig) -> None:
         self.config = config
+        self.task_cls = task_class(config.task)
         s = config.solver
-        self.solver = Solver(iterations=s.iterations, max_speed=s.max_speed)
+        self.solver = s.solver()
         self.dt = s.dt
         self.substeps = s.substeps
         n = config.needle
-        self.needle_shape = NeedleShape(
-            arc=n.arc,
-            curvature_radius=n.curvature_radius,
-            wire_radius=n.wire_radius,
-            holder_mass=n.holder_mass,
-            holder_inertia=n.holder_inertia,
-            grip_fraction=n.grip_fraction,
-            node_count=n.node_count,
-        )
+        self.needle_shape = n.shape()
         self.needle_model = NeedleModel.from_shape(
             self.needle_shape,
             linear_damping=n.linear_damping,
             angular_damping=n.angular_damping,
             gravity_compensation=n.gravity_compensation,
         )
-        su = config.suture
-        self.suture_params = (
-            SutureParams(length=su.length, node_count=su.node_count, radius=su.radius) if su.node_count else None
-        )
+        self.suture_params = config.suture.params()
         a = config.action
         self.coupling_spring = VirtualCoupling(
             linear_stiffness=a.coupling_linear_stiffness,
@@ -244,44 +182,33 @@ class Simulation:
             self._builds.move_to_end(key)
         return build
 
-    def _tissue(self, params: EpisodeParams):
-        """``(TissueModel, left face (k,), right face (k,))``; the faces are the wound faces' free particles in
+    def _tissue(self, params: EpisodeParams) -> tuple[Scene, np.ndarray, np.ndarray]:
+        """``(tissue Scene, left face (k,), right face (k,))``; the faces are the wound faces' free particles in
         the upper half of the tissue (the gap a surgeon sees; the bottom rows sit on the rigid base)."""
         cfg = self.config
         t = cfg.tissue
-        material = TissueMaterial(
-            youngs_modulus=params.youngs_modulus, poisson_ratio=t.poisson_ratio, density=t.density, damping=t.damping
-        )
+        material = TissueMaterial(**{**sim_fields(t, TissueMaterial), "youngs_modulus": params.youngs_modulus})
         scene = cfg.scene
         empty = np.zeros(0, dtype=np.int64)
         if scene.kind == "pad":
-            mesh = box_tet_grid(scene.size, scene.cells, scheme="five")
-            pinned = mesh.vertices[:, 2] <= 1e-9 * scene.size[2]
-            return TissueModel.from_mesh(mesh, material, pinned=pinned), empty, empty
+            return suturing_pad(scene.size, scene.cells, material, "five", STANDARD_GRAVITY), empty, empty
         built = two_bar_wound(bar_size=scene.size, cells=scene.cells, gap=params.gap, material=material, scheme="five",
                               base=True, gravity=STANDARD_GRAVITY)
         tissue = built.model.tissue
         upper = (tissue.particle_inv_mass > 0.0) & (tissue.particle_rest_q[:, 2] >= 0.5 * scene.size[2])
         left = built.regions["left_wound_face"]
         right = built.regions["right_wound_face"]
-        return tissue, left[upper[left]], right[upper[right]]
+        return built, left[upper[left]], right[upper[right]]
 
     def _make_build(self, params: EpisodeParams) -> _Build:
         cfg = self.config
-        tissue, left, right = self._tissue(params)
+        tissue_scene, left, right = self._tissue(params)
         arcs = plan_stitches(cfg.scene.kind, cfg.scene.size, params.gap, self.needle_shape.curvature_radius,
                              cfg.plan.center_height, cfg.plan.stitches)
-        coupling_cfg = cfg.coupling
-        coupling_params = CouplingParams(
-            puncture_force=params.puncture_force,
-            resistance_eps=coupling_cfg.resistance_eps,
-            path_spacing_min=coupling_cfg.path_spacing_min,
-            path_spacing_max=coupling_cfg.path_spacing_max,
-            tear_force=coupling_cfg.tear_force,
-            needle_axial_friction=coupling_cfg.needle_axial_friction,
-        )
+        coupling_params = cfg.coupling.params(puncture_force=params.puncture_force)
         needle = self.needle_model
-        pos, quat = needle_pose_on_arc(needle, arcs[0], arcs[0].entry_angle - cfg.plan.start_angle)
+        pos, quat = needle_circle_pose(needle, arcs[0].center, arcs[0].axis, arcs[0].u,
+                                       arcs[0].entry_angle - cfg.plan.start_angle)
         grip = pos + quat_rotate(quat, needle.grip_pos_body)
         quat = quat_normalize(quat_mul(quat_from_rotation_vector(params.needle_rotation_offset), quat))
         pos = grip - quat_rotate(quat, needle.grip_pos_body) + params.needle_position_offset
@@ -289,23 +216,16 @@ class Simulation:
         suture = suture_state = None
         if self.suture_params is not None:
             suture = RodModel.from_params(self.suture_params)
-            swage = pos + quat_rotate(quat, needle.swage_pos_body)
-            if cfg.task == "wound_closure":
-                tail = arcs[0].entry + np.array([0.0, -TAIL_OFFSET, 0.25 * TAIL_OFFSET])
-                suture_state = _tent_rod(suture, swage, tail, np.array([0.0, -1.0, 1.0]))
-            else:
-                suture_state = RodState.straight(suture, swage, (0.0, -1.0, 1.0))
-        coupling = CouplingModel.build(tissue, needle, suture, coupling_params, knot_tail=cfg.suture.knot_tail)
-        model = Model(tissue=tissue, needle=needle, suture=suture, coupling=coupling,
-                      gravity=(0.0, 0.0, -STANDARD_GRAVITY))
-        initial = State.initial(model, needle=needle_state, suture=suture_state)
-        rest = tissue.particle_rest_q
+            suture_state = self.task_cls.initial_suture(suture, pos + quat_rotate(quat, needle.swage_pos_body), arcs)
+        scene = assemble(tissue_scene, needle, needle_state, suture, suture_state, coupling_params,
+                         knot_tail=cfg.suture.knot_tail)
+        rest = scene.model.tissue.particle_rest_q
         margin = cfg.termination.workspace_margin
         workspace = np.stack([rest.min(axis=0) - margin, rest.max(axis=0) + margin])
-        gap_rest = _mean_gap(rest, left, right)
+        gap_rest = mean_gap(rest, left, right)
         for array in (workspace, left, right):
             array.flags.writeable = False
-        return _Build(model, arcs, workspace, left, right, gap_rest, initial)
+        return _Build(scene.model, arcs, workspace, left, right, gap_rest, scene.state)
 
     # ------------------------------------------------------------------------------------------------------
     # Episode
@@ -330,8 +250,8 @@ class Simulation:
             return
         self.state = self._build.initial.snapshot()
         self._entries, self._exits = [], []
-        if phase != "approach":
-            self._run_script(phase)
+        if phase != self.task_cls.PHASES[0]:
+            self.task_cls.start_phase(self, phase)
         self._phase_cache[key] = self.snapshot()
         if len(self._phase_cache) > CACHE_SIZE:
             self._phase_cache.popitem(last=False)
@@ -356,28 +276,25 @@ class Simulation:
             return
         self.control.needle_wrench[:] = self.coupling_spring.wrench(self.model.needle, needle, target_pos, target_quat)
 
+    def substep(self, wrench: np.ndarray) -> None:
+        """Advance one solver substep with the grip-point ``wrench`` (6,) ``[N, N m]``."""
+        self.control.needle_wrench[:] = wrench
+        self._substep()
+
     def _substep(self) -> None:
-        """One solver substep, recording punctures and exits."""
-        state = self.state
-        coupling = state.coupling
-        punctures = coupling.punctures
-        count = coupling.path_count
-        was_open = coupling.punctured
-        self.solver.step(self.model, state, self.control, self.dt, timings=self.timings)
-        if state.diverged:
+        """One solver substep, recording punctures and exits (:func:`~suture_gym.envs.readout.substep_events`)."""
+        mark = coupling_mark(self.state)
+        self.solver.step(self.model, self.state, self.control, self.dt, timings=self.timings)
+        if self.state.diverged:
             return
-        coupling = state.coupling
-        rest = self.model.tissue.particle_rest_q
-        model = self.model.coupling
-        if coupling.punctures > punctures and coupling.path_count > 0:
-            k = coupling.path_count - 1
-            self._entries.append(access_point(model, rest, coupling.path_entry_tri[k], coupling.path_entry_bary[k]))
-        if was_open and coupling.path_count == count and not coupling.path_open[count - 1]:
-            k = count - 1
-            self._exits.append(access_point(model, rest, coupling.path_exit_tri[k], coupling.path_exit_bary[k]))
+        entry, exit_ = substep_events(self.model, mark, self.state)
+        if entry is not None:
+            self._entries.append(entry)
+        if exit_ is not None:
+            self._exits.append(exit_)
 
     # ------------------------------------------------------------------------------------------------------
-    # Scripted surgeon (start phases)
+    # Poses (the scripted surgeon's, suture_gym.tasks.surgeon)
     # ------------------------------------------------------------------------------------------------------
 
     def grip_pose(self) -> tuple[np.ndarray, np.ndarray]:
@@ -392,55 +309,8 @@ class Simulation:
     def arc_grip_target(self, arc: PlannedArc, tip_angle: float) -> tuple[np.ndarray, np.ndarray]:
         """Grip pose ``(position (3,) m, orientation (4,))`` of the needle lying on ``arc`` with its tip at
         ``tip_angle`` (rad)."""
-        pos, quat = needle_pose_on_arc(self.model.needle, arc, tip_angle)
+        pos, quat = needle_circle_pose(self.model.needle, arc.center, arc.axis, arc.u, tip_angle)
         return pos + quat_rotate(quat, self.model.needle.grip_pos_body), quat
-
-    def _turn(self, arc: PlannedArc, start: float, end: float) -> None:
-        """Turn the needle's target about ``arc``'s centre from tip angle ``start`` to ``end`` (rad)."""
-        steps = max(1, int(math.ceil(abs(end - start) / (SCRIPT_TURN_RATE * self.control_dt))))
-        for i in range(1, steps + 1):
-            target = self.arc_grip_target(arc, start + (end - start) * i / steps)
-            self.step_toward(*target)
-            if self.state.diverged:
-                return
-
-    def _run_script(self, phase: str) -> None:
-        """Drive the needle from the approach pose to the start of ``phase``."""
-        arc = self.arcs[0]
-        start = arc.entry_angle - self.config.plan.start_angle
-        if phase == "inserted":
-            self._turn(arc, start, 0.5 * (arc.entry_angle + arc.exit_angle))
-            return
-        if phase == "exited":
-            self._turn(arc, start, arc.exit_angle + SCRIPT_CLEARANCE)
-            return
-        if phase == "first_bite":
-            clear = arc.exit_angle + self.model.needle.shape.arc_angle + SCRIPT_CLEARANCE
-            self._turn(arc, start, clear)
-            self._pull_thread(arc, clear)
-            return
-        raise ValueError(f"unknown start phase {phase!r}")
-
-    def _pull_thread(self, arc: PlannedArc, tip_angle: float) -> None:
-        """Pull the needle along ``arc.pull_direction`` with a constant force (``SCRIPT_PULL_FORCE``, damped by
-        ``SCRIPT_PULL_DAMPING``; orientation held by the virtual coupling's angular spring) until the thread is
-        through by ``plan.thread_target``, for at most ``SCRIPT_PULL_TIME``."""
-        target = self.config.plan.thread_target
-        _, hold = self.arc_grip_target(arc, tip_angle)
-        force = SCRIPT_PULL_FORCE * arc.pull_direction
-        spring = self.coupling_spring
-        needle_model = self.model.needle
-        for _ in range(int(math.ceil(SCRIPT_PULL_TIME / self.control_dt))):
-            if self.thread_through() >= target or self.state.diverged:
-                return
-            for _ in range(self.substeps):
-                needle = self.state.needle
-                velocity = needle_point_velocity(needle_model, needle, needle_model.grip_pos_body)
-                turn = quat_rotation_vector(quat_mul(hold, quat_conj(needle.body_quat)))
-                self.control.needle_wrench[:3] = force - SCRIPT_PULL_DAMPING * velocity
-                torque = spring.angular_stiffness * turn - spring.angular_damping * needle.body_omega
-                self.control.needle_wrench[3:] = torque
-                self._substep()
 
     # ------------------------------------------------------------------------------------------------------
     # Observables
@@ -448,58 +318,21 @@ class Simulation:
 
     def thread_through(self) -> float:
         """Thread beyond the needle that has come out of the newest exit point, m (0 before any exit)."""
-        c = self.state.coupling
-        n = c.path_count
-        newest = n - 1 if n > 0 and not c.path_open[n - 1] else n - 2
-        if newest < 0:
-            return 0.0
-        swage = float(self.model.coupling.strand_sigma[self.model.needle.node_count - 1])
-        return max(0.0, float(c.path_sigma_exit[newest]) - swage)
+        return thread_through(self.model, self.state)
 
     def wound_gap(self) -> float:
         """Mean gap between the wound faces, m, over their free particles in the upper half of the tissue (mean
         y of the far face minus mean y of the near face); 0 without a wound."""
-        return _mean_gap(self.state.tissue.particle_q, self._build.left_face, self._build.right_face)
+        return mean_gap(self.state.tissue.particle_q, self._build.left_face, self._build.right_face)
 
     def observables(self) -> Observables:
-        """Snapshot of what the tasks read (copies); clears the recorded events."""
-        state = self.state
-        needle_model = self.model.needle
-        needle = state.needle
-        coupling = state.coupling
-        rot = quat_to_matrix(needle.body_quat)
-        pos = needle.body_pos
-        samples = np.zeros((0, 3))
-        count = self.config.observation.suture_samples
-        if state.suture is not None and count:
-            nodes = state.suture.node_pos
-            samples = nodes[np.round(np.linspace(0, len(nodes) - 1, count)).astype(np.int64)].copy()
-        entries = np.array(self._entries).reshape(-1, 3)
-        exits = np.array(self._exits).reshape(-1, 3)
+        """Snapshot of what the tasks read (copies, :func:`~suture_gym.envs.readout.observables`); clears the
+        recorded events."""
+        faces = (self._build.left_face, self._build.right_face)
+        obs = observables(self.model, self.state, self._entries, self._exits, faces,
+                          self.config.observation.suture_samples)
         self._entries, self._exits = [], []
-        return Observables(
-            time=float(state.time),
-            tip_pos=pos + rot @ needle_model.tip_pos_body,
-            tip_dir=rot @ needle_model.tip_dir_body,
-            needle_normal=rot @ needle_model.plane_normal_body,
-            needle_center=pos + rot @ needle_model.arc_center_body,
-            grip_pos=pos + rot @ needle_model.grip_pos_body,
-            needle_vel=needle.body_vel.copy(),
-            needle_omega=needle.body_omega.copy(),
-            tip_sdist=float(coupling.strand_sdist[0]),
-            punctured=bool(coupling.punctured),
-            path_count=int(coupling.path_count),
-            new_entries=entries,
-            new_exits=exits,
-            tip_force=float(coupling.tip_force),
-            tissue_force=float(coupling.max_force),
-            haptic_wrench=state.needle_reaction.copy(),
-            damaged=bool(coupling.damaged),
-            wound_gap=self.wound_gap(),
-            thread_through=self.thread_through(),
-            suture_samples=samples,
-            diverged=bool(state.diverged),
-        )
+        return obs
 
     # ------------------------------------------------------------------------------------------------------
     # Snapshots and rendering
@@ -549,46 +382,3 @@ class Simulation:
             force_threshold=(self.params or nominal_params(self.config)).puncture_force,
             caption=caption,
         )
-
-
-def _mean_gap(q: np.ndarray, left: np.ndarray, right: np.ndarray) -> float:
-    """Mean y of the right face's particles minus that of the left face's, m (0 when there are none)."""
-    if left.size == 0 or right.size == 0:
-        return 0.0
-    return float(q[right, 1].mean() - q[left, 1].mean())
-
-
-def _tent_rod(model: RodModel, start: np.ndarray, end: np.ndarray, direction: np.ndarray) -> RodState:
-    """A rod at rest from ``start`` (3,) to ``end`` (3,) m along two straight legs meeting at an apex beyond their
-    midpoint along ``direction`` (3,), placed so the legs' total length is the rod's rest length (a tent); nodes
-    at their rest arc lengths, segment frames along the legs."""
-    length = float(model.seg_rest_length.sum())
-    distance = float(np.linalg.norm(end - start))
-    if not distance < length:
-        raise ValueError(f"the thread ({length} m) is too short to reach its end point {distance:.4g} m away")
-    mid = 0.5 * (start + end)
-    d = direction / np.linalg.norm(direction)
-
-    def legs(k: float) -> float:
-        apex = mid + k * d
-        return float(np.linalg.norm(apex - start) + np.linalg.norm(end - apex))
-
-    lo, hi = 0.0, length
-    for _ in range(100):  # bisection: the legs' length grows monotonically with k
-        k = 0.5 * (lo + hi)
-        lo, hi = (k, hi) if legs(k) < length else (lo, k)
-    apex = mid + hi * d
-    leg = float(np.linalg.norm(apex - start))
-    s = np.concatenate([[0.0], np.cumsum(model.seg_rest_length)])
-    first = s <= leg
-    pos = np.empty((len(s), 3))
-    pos[first] = start + s[first, None] / leg * (apex - start)
-    rest = (s[~first] - leg) / max(length - leg, 1e-300)
-    pos[~first] = apex + np.minimum(rest, 1.0)[:, None] * (end - apex)
-    state = RodState.straight(model, start, end - start)
-    state.node_pos[:] = pos
-    state.node_pos_prev[:] = pos
-    z = np.array([0.0, 0.0, 1.0])
-    for j, e in enumerate(np.diff(pos, axis=0)):
-        state.seg_quat[j] = quat_from_two_vectors(z, e / np.linalg.norm(e))
-    return state

@@ -108,9 +108,9 @@ def observation_table(layout: tuple[ObsField, ...]) -> list[tuple[int, str, str,
 
 def main() -> None:
     """Print the observation table of each task's default config."""
-    from suture_gym.envs.config import TASKS
+    from suture_gym.envs.registry import registered_tasks
 
-    for task in TASKS:
+    for task in registered_tasks():
         layout = observation_layout(default_config(task))
         print(f"{task}: {observation_size(layout)} entries")
         for index, name, unit, description in observation_table(layout):

@@ -19,7 +19,8 @@ import numpy as np
 from gymnasium.vector import AutoresetMode
 from gymnasium.vector.utils import batch_space, concatenate, create_empty_array
 
-from suture_gym.envs.base import EnvState, SutureEnv, SutureGoalEnv
+from suture_gym.envs.base import EnvState
+from suture_gym.envs.registry import make_env
 
 
 @dataclass(frozen=True)
@@ -57,7 +58,7 @@ class SutureVectorEnv(gym.vector.VectorEnv):
     """N suturing envs of one task, batched (module docstring).
 
     Args:
-        task: ``"needle_insert"``, ``"suture_throw"`` or ``"wound_closure"``.
+        task: a registered task name (``"needle_insert"``, ``"suture_throw"``, ``"wound_closure"``, ...).
         num_envs: N >= 1.
         config: as for :class:`~suture_gym.envs.base.SutureEnv` (shared by all N).
         render_mode: None or ``"rgb_array"`` (:meth:`render` returns one image per env).
@@ -80,8 +81,7 @@ class SutureVectorEnv(gym.vector.VectorEnv):
         mode = AutoresetMode(autoreset_mode)
         if mode not in (AutoresetMode.NEXT_STEP, AutoresetMode.SAME_STEP):
             raise ValueError(f"autoreset_mode must be NEXT_STEP or SAME_STEP, got {mode!r}")
-        cls = SutureGoalEnv if goal_conditioned else SutureEnv
-        self.envs = [cls(task, config, render_mode, action_mode) for _ in range(num_envs)]
+        self.envs = [make_env(task, goal_conditioned, config, render_mode, action_mode) for _ in range(num_envs)]
         first = self.envs[0]
         self.num_envs = num_envs
         self.render_mode = render_mode

@@ -7,9 +7,9 @@ timed too), warms up (numba compilation excluded) and then times env steps on on
 
 * ``env_steps_per_s``: uniformly random actions from a seeded action space, resetting whenever an episode
   ends (the resets' time included), the usual definition;
-* ``env_steps_per_s_scripted``: the scripted surgeon (:meth:`~suture_gym.envs.SutureEnv.scripted_action`)
-  turning the needle along the planned arc, so the needle is inside the tissue most of the time (path
-  growth, node-path rows), the heavier case.
+* ``env_steps_per_s_scripted``: the scripted surgeon (:class:`~suture_gym.tasks.surgeon.ScriptedSurgeon`)
+  turning the needle along the planned arc at 2 rad/s and pulling the thread, so the needle is inside the
+  tissue most of the time (path growth, node-path rows), the heavier case.
 
 ``substep_ms`` is the median over env steps of the solver time of the step divided by its substeps;
 ``collision_fraction`` and ``solver_fraction`` are the detection and projection shares of the solver time.
@@ -27,8 +27,11 @@ import suture_gym.envs  # noqa: F401  (registers the ids)
 from suture_gym.envs import ENV_IDS
 from suture_gym.envs.vector import SutureVectorEnv
 from suture_gym.measure.registry import CheckResult, benchmark, check
+from suture_gym.tasks.surgeon import ScriptedSurgeon
 
 WARMUP_STEPS = 50
+#: Tip-angle advance of the scripted surgeon in the scripted benchmark, rad/s.
+SCRIPTED_TURN_RATE = 2.0
 TIMED_STEPS = 600
 VECTOR_ENVS = 4
 
@@ -53,18 +56,16 @@ def _random_run(env: gym.Env, steps: int, seed: int) -> tuple[np.ndarray, np.nda
 
 
 def _scripted_run(env: gym.Env, steps: int, seed: int) -> float:
-    """Wall time (s) of ``steps`` steps of the scripted surgeon, restarting each episode when it ends."""
-    unwrapped = env.unwrapped
-    rate = 2.0  # rad/s, tip angle advance of the scripted surgeon
-    env.reset(seed=seed)
-    angle = unwrapped.sim.arcs[0].entry_angle - unwrapped.config.plan.start_angle
+    """Wall time (s) of ``steps`` steps of the scripted surgeon (:class:`~suture_gym.tasks.surgeon.ScriptedSurgeon`,
+    turning at :data:`SCRIPTED_TURN_RATE`), restarting each episode when it ends."""
+    surgeon = ScriptedSurgeon(env, turn_rate=SCRIPTED_TURN_RATE)
+    obs, _ = env.reset(seed=seed)
     start = time.perf_counter()
     for _ in range(steps):
-        angle += rate * unwrapped.sim.control_dt
-        _, _, terminated, truncated, _ = env.step(unwrapped.scripted_action(angle))
+        obs, _, terminated, truncated, _ = env.step(surgeon(obs))
         if terminated or truncated:
-            env.reset()
-            angle = unwrapped.sim.arcs[0].entry_angle - unwrapped.config.plan.start_angle
+            obs, _ = env.reset()
+            surgeon.reset()
     return time.perf_counter() - start
 
 
@@ -95,7 +96,7 @@ def _bench_env(env_id: str) -> dict:
         "substeps_per_env_step": sim.substeps,
         "dt_s": sim.dt,
         "env_id": env_id,
-        "workload": "seeded uniform random actions, resets included; scripted: needle turned along the plan",
+        "workload": "seeded uniform random actions, resets included; scripted: the scripted surgeon at 2 rad/s",
     }
 
 
@@ -108,29 +109,22 @@ def _register_env_benchmarks() -> None:
 _register_env_benchmarks()
 
 
-def _scripted_episode(env_id: str, turn_rate: float, pull_speed: float) -> dict:
-    """Run the scripted surgeon through one episode of ``env_id`` (seed 0, default config, wrench actions):
-    turn the needle about its centre along the plan at ``turn_rate`` rad/s until the swage is out, then move
-    the holder along the stitch's pull direction at ``pull_speed`` m/s (the action's force limit bounds the
-    pull). Returns the recorded entry and exit errors (m), the thread pulled through (m) and the end flags."""
+def _scripted_episode(env_id: str, turn_rate: float, pull_speed: float | None) -> dict:
+    """Run the scripted surgeon (:class:`~suture_gym.tasks.surgeon.ScriptedSurgeon`) through one episode of
+    ``env_id`` (seed 0, default config, wrench actions), turning at ``turn_rate`` rad/s and pulling at
+    ``pull_speed`` m/s (None: the task's). Returns the recorded entry and exit errors (m), the thread pulled
+    through (m) and the end flags."""
     env = gym.make(env_id)
     unwrapped = env.unwrapped
     sim = unwrapped.sim
-    env.reset(seed=0)
+    surgeon = ScriptedSurgeon(env, turn_rate=turn_rate, pull_speed=pull_speed)
+    obs, _ = env.reset(seed=0)
     arc = sim.arcs[0]
-    angle = arc.entry_angle - unwrapped.config.plan.start_angle
-    turn_end = arc.exit_angle + sim.model.needle.shape.arc_angle + 0.3
     info, thread = {}, 0.0
     steps = 0
     while steps < env.spec.max_episode_steps:
         steps += 1
-        if angle < turn_end:
-            angle += turn_rate * sim.control_dt
-            action = unwrapped.scripted_action(angle)
-        else:
-            grip, quat = sim.grip_pose()
-            action = unwrapped.action_toward(grip + pull_speed * sim.control_dt * arc.pull_direction, quat)
-        _, _, terminated, truncated, info = env.step(action)
+        obs, _, terminated, truncated, info = env.step(surgeon(obs))
         thread = max(thread, sim.thread_through())
         if terminated or truncated:
             break
@@ -148,12 +142,14 @@ def _scripted_episode(env_id: str, turn_rate: float, pull_speed: float) -> dict:
     return result
 
 
-def _scripted_settings(env_id: str, turn_rate: float, pull_speed: float) -> dict:
+def _scripted_settings(env_id: str, turn_rate: float, pull_speed: float | None) -> dict:
     from suture_gym.envs.config import config_to_dict
 
-    config = gym.make(env_id).unwrapped.config
-    return {"env_id": env_id, "seed": 0, "turn_rate_rad_s": turn_rate, "pull_speed_m_s": pull_speed,
-            "turn_end": "exit angle + needle arc + 0.3 rad", "config": config_to_dict(config)}
+    unwrapped = gym.make(env_id).unwrapped
+    speed = unwrapped.task.SURGEON_PULL_SPEED if pull_speed is None else pull_speed
+    return {"env_id": env_id, "seed": 0, "turn_rate_rad_s": turn_rate, "pull_speed_m_s": speed,
+            "surgeon": "suture_gym.tasks.surgeon.ScriptedSurgeon", "turn_end": "exit angle + needle arc + 0.3 rad",
+            "config": config_to_dict(unwrapped.config)}
 
 
 @check("env_needle_insert_scripted_accuracy")
@@ -161,13 +157,13 @@ def check_needle_insert_scripted_accuracy() -> CheckResult:
     """The scripted surgeon's bite in NeedleInsert: the larger of the entry and exit errors (material points
     against the planned markers) must be within the task's access tolerance, and the episode must succeed."""
     env_id, rate = "SutureGym/NeedleInsert-v0", 2.0
-    run = _scripted_episode(env_id, rate, 0.0)
+    run = _scripted_episode(env_id, rate, None)
     tolerance = gym.make(env_id).unwrapped.config.reward.access_tolerance
     measured = max(run["entry_error_m"], run["exit_error_m"])
     if not run["is_success"]:
         measured = math.inf
     return CheckResult("env_needle_insert_scripted_accuracy", measured, 0.0, tolerance, "m", "<=",
-                       _scripted_settings(env_id, rate, 0.0), run)
+                       _scripted_settings(env_id, rate, None), run)
 
 
 @check("env_suture_throw_scripted_thread")

@@ -45,6 +45,7 @@ from suture_gym.sim.scenes import (
     wound_gap,
 )
 from suture_gym.sim.solver import PHASES, Solver
+from suture_gym.tasks.surgeon import pull_wrench
 
 DT = 1.0e-3  # s, substep of every run here
 GAP_WINDOW = {"x_range": 0.005, "depth": 0.01}  # m, wound faces near the stitch where the gap is measured
@@ -52,7 +53,8 @@ GAP_WINDOW = {"x_range": 0.005, "depth": 0.01}  # m, wound faces near the stitch
 
 @dataclass
 class StitchController:
-    """Scripted surgeon for :func:`~suture_gym.sim.scenes.two_bar_suturing` scenes.
+    """Scripted surgeon for :func:`~suture_gym.sim.scenes.two_bar_suturing` scenes, on a bare scene (no env):
+    the turn of :mod:`suture_gym.tasks.surgeon` on a fixed schedule, and its pull (:func:`pull_wrench`).
 
     Turn phase (``t < turn_angle / turn_rate``): a :class:`~suture_gym.sim.needle.VirtualCoupling` pulls the
     needle towards the pose turned by ``turn_rate t`` about its circle's centre ``arc_center`` (3,) m.
@@ -83,11 +85,7 @@ class StitchController:
         _, hold = needle_arc_pose(needle, self.arc_center, self.turn_angle)
         direction = np.asarray(self.pull_direction, dtype=np.float64)
         direction = direction / np.linalg.norm(direction)
-        velocity = needle_point_velocity(needle, state.needle, needle.grip_pos_body)
-        turn = quat_rotation_vector(quat_mul(hold, quat_conj(state.needle.body_quat)))
-        force = self.pull_force * direction - self.pull_damping * velocity
-        torque = self.coupling.angular_stiffness * turn - self.coupling.angular_damping * state.needle.body_omega
-        return np.concatenate([force, torque])
+        return pull_wrench(needle, state.needle, hold, self.pull_force * direction, self.pull_damping, self.coupling)
 
     def settings(self) -> dict:
         return {

@@ -6,6 +6,7 @@ overridden) and returns the model, a state at rest, named particle regions and t
 
 from __future__ import annotations
 
+import math
 from dataclasses import asdict, dataclass, field
 
 import numpy as np
@@ -14,7 +15,7 @@ from suture_gym.sim.coupling import CouplingModel, CouplingParams
 from suture_gym.sim.mesh import TetMesh, box_tet_grid
 from suture_gym.sim.model import Model, State, TissueMaterial, TissueModel, TissueState
 from suture_gym.sim.needle import NeedleModel, NeedleShape, NeedleState
-from suture_gym.sim.quat import quat_from_axis_angle, quat_mul, quat_normalize, quat_to_matrix
+from suture_gym.sim.quat import quat_from_axis_angle, quat_from_two_vectors, quat_mul, quat_normalize, quat_to_matrix
 from suture_gym.sim.rod import RodModel, RodState, SutureParams
 
 STANDARD_GRAVITY = 9.81  # m/s^2
@@ -310,6 +311,49 @@ def suturing_pad(
     )
 
 
+def _quat_from_matrix(r: np.ndarray) -> np.ndarray:
+    """Unit quaternion (w, x, y, z) of the rotation matrix ``r`` (3, 3), with ``w >= 0``."""
+    m = np.asarray(r, dtype=np.float64)
+    trace = m[0, 0] + m[1, 1] + m[2, 2]
+    if trace > 0.0:
+        s = 2.0 * math.sqrt(1.0 + trace)
+        q = np.array([0.25 * s, (m[2, 1] - m[1, 2]) / s, (m[0, 2] - m[2, 0]) / s, (m[1, 0] - m[0, 1]) / s])
+    else:
+        i = int(np.argmax([m[0, 0], m[1, 1], m[2, 2]]))
+        j, k = (i + 1) % 3, (i + 2) % 3
+        s = 2.0 * math.sqrt(1.0 + m[i, i] - m[j, j] - m[k, k])
+        q = np.zeros(4)
+        q[0] = (m[k, j] - m[j, k]) / s
+        q[1 + i] = 0.25 * s
+        q[1 + j] = (m[j, i] + m[i, j]) / s
+        q[1 + k] = (m[k, i] + m[i, k]) / s
+    q /= np.linalg.norm(q)
+    return q if q[0] >= 0.0 else -q
+
+
+def needle_circle_pose(
+    needle: NeedleModel, center, axis, u, tip_angle: float
+) -> tuple[np.ndarray, np.ndarray]:
+    """Pose ``(body_pos (3,) m, body_quat (4,))`` of ``needle`` lying on the circle of its own radius centred at
+    ``center`` (3,) m in the plane of unit normal ``axis`` (3,), with its tip at angle ``tip_angle`` (rad) and
+    its body trailing behind the tip: the one needle-on-circle poser of the package.
+
+    Angles are measured from the unit in-plane direction ``u`` (3,) toward ``v = axis x u``; the tip advances
+    counter-clockwise about ``axis`` (the :class:`~suture_gym.tasks.PlannedArc` convention). The needle's shape
+    frame (circle in its x-y plane, normal +z, tip at polar angle ``tau``) maps to the circle: shape x ->
+    ``cos(a) u + sin(a) v``, shape y -> ``sin(a) u - cos(a) v``, shape z -> ``-axis``, with
+    ``a = tip_angle + tau``, so shape angle ``theta`` lands at angle ``a - theta``.
+    """
+    axis = np.asarray(axis, dtype=np.float64)
+    u = np.asarray(u, dtype=np.float64)
+    v = np.cross(axis, u)
+    a = tip_angle + needle.shape.tip_angle
+    e1 = math.cos(a) * u + math.sin(a) * v
+    e2 = math.sin(a) * u - math.cos(a) * v
+    quat = _quat_from_matrix(np.stack([e1, e2, -axis], axis=1))
+    return np.asarray(center, dtype=np.float64) - quat_to_matrix(quat) @ needle.arc_center_body, quat
+
+
 #: Needle orientation across the wound of :func:`two_bar_wound` (body to world): the needle's plane is the
 #: y-z plane, its crown up, the tip on the -y side pointing down; turning it about +x drives it tip first
 #: towards +y, across the wound (shape x -> world -y, shape y -> world +z, shape z -> world -x).
@@ -321,11 +365,51 @@ def needle_arc_pose(
 ) -> tuple[np.ndarray, np.ndarray]:
     """Pose ``(body_pos (3,) m, body_quat (4,))`` of a needle whose circle is centred at ``arc_center`` (3,) m,
     turned by ``angle`` rad about ``axis`` (3,) from ``base_quat`` (4,): how a surgeon drives a curved needle,
-    about its own centre."""
+    about its own centre.
+
+    The same pose as :func:`needle_circle_pose` with the circle's frame taken from ``base_quat`` (for the
+    defaults: ``axis = +x``, ``u = +y``, tip at ``pi + angle - tau``), composed as quaternions instead; the two
+    agree to rounding (1e-16), and the scene measurements keep this arithmetic because the robustness runs
+    (:func:`~suture_gym.measure.interaction.hold_wrench`) are chaotic enough to change under such rounding.
+    """
     axis = np.asarray(axis, dtype=np.float64)
     quat = quat_normalize(quat_mul(quat_from_axis_angle(axis, float(angle)), np.asarray(base_quat, dtype=np.float64)))
     pos = np.asarray(arc_center, dtype=np.float64) - quat_to_matrix(quat) @ needle.arc_center_body
     return pos, quat
+
+
+def assemble(
+    scene: Scene,
+    needle: NeedleModel,
+    needle_state: NeedleState,
+    suture: RodModel | None = None,
+    suture_state: RodState | None = None,
+    coupling_params: CouplingParams | None = None,
+    knot_tail: float = 0.0,
+) -> Scene:
+    """The tissue ``scene`` with a needle, an optional suture and their coupling with the tissue: the one scene
+    assembler, used by :func:`add_strands` and the environments alike.
+
+    Args:
+        scene: a tissue scene (its tissue state is copied as the initial tissue state; no tissue: no coupling).
+        needle: the needle model; ``needle_state`` its state at rest.
+        suture: the suture model, or None; ``suture_state`` its state (required with a suture).
+        coupling_params: :class:`~suture_gym.sim.coupling.CouplingParams` (default parameters if None).
+        knot_tail: m; a stopper knot this far from the suture's free end (0: none;
+            :meth:`~suture_gym.sim.coupling.CouplingModel.build`).
+
+    Returns:
+        A new :class:`Scene` with the same regions and a copy of the settings.
+    """
+    tissue = scene.model.tissue
+    coupling = None
+    if tissue is not None:
+        coupling = CouplingModel.build(tissue, needle, suture, coupling_params or CouplingParams(), knot_tail=knot_tail)
+    model = Model(tissue=tissue, needle=needle, suture=suture, coupling=coupling, gravity=scene.model.gravity)
+    state = State.initial(model, needle=needle_state, suture=suture_state)
+    if tissue is not None:
+        state.tissue.assign(scene.state.tissue)
+    return Scene(model=model, state=state, regions=scene.regions, settings=dict(scene.settings))
 
 
 def add_strands(
@@ -340,7 +424,8 @@ def add_strands(
     suture_knot_tail: float = 0.0,
     coupling_params: CouplingParams | None = None,
 ) -> Scene:
-    """The tissue ``scene`` with a needle, an optional suture on its swage and their coupling with the tissue.
+    """The tissue ``scene`` with a needle, an optional suture on its swage and their coupling with the tissue
+    (:func:`assemble`).
 
     Args:
         scene: a tissue scene (its tissue state is copied as the initial tissue state).
@@ -357,7 +442,6 @@ def add_strands(
     Returns:
         A new :class:`Scene` (the same regions) whose settings add ``needle``, ``suture`` and ``coupling``.
     """
-    tissue = scene.model.tissue
     needle = NeedleModel.from_shape(needle_shape, gravity_compensation=gravity_compensation)
     needle_state = NeedleState.at_rest(*needle_pose)
     suture = suture_state = None
@@ -367,17 +451,9 @@ def add_strands(
             suture = suture.with_pins([suture.node_count - 1])
         swage = needle_state.body_pos + quat_to_matrix(needle_state.body_quat) @ needle.swage_pos_body
         suture_state = RodState.straight(suture, swage, suture_direction)
-    coupling = None
-    if tissue is not None:
-        coupling = CouplingModel.build(
-            tissue, needle, suture, coupling_params or CouplingParams(), knot_tail=suture_knot_tail
-        )
-    model = Model(tissue=tissue, needle=needle, suture=suture, coupling=coupling, gravity=scene.model.gravity)
-    state = State.initial(model, needle=needle_state, suture=suture_state)
-    if tissue is not None:
-        state.tissue.assign(scene.state.tissue)
-    settings = {
-        **scene.settings,
+    built = assemble(scene, needle, needle_state, suture, suture_state, coupling_params, suture_knot_tail)
+    coupling = built.model.coupling
+    built.settings.update({
         "needle": {**asdict(needle.shape), "gravity_compensation": gravity_compensation},
         "needle_pose": {"body_pos_m": needle_state.body_pos.tolist(), "body_quat": needle_state.body_quat.tolist()},
         "suture": None
@@ -393,8 +469,44 @@ def add_strands(
             "knot_tail_m": suture_knot_tail,
         },
         "coupling": None if coupling is None else asdict(coupling.params),
-    }
-    return Scene(model=model, state=state, regions=scene.regions, settings=settings)
+    })
+    return built
+
+
+def tent_rod(model: RodModel, start: np.ndarray, end: np.ndarray, direction: np.ndarray) -> RodState:
+    """A rod at rest from ``start`` (3,) to ``end`` (3,) m along two straight legs meeting at an apex beyond their
+    midpoint along ``direction`` (3,), placed so the legs' total length is the rod's rest length (a tent); nodes
+    at their rest arc lengths, segment frames along the legs."""
+    length = float(model.seg_rest_length.sum())
+    distance = float(np.linalg.norm(end - start))
+    if not distance < length:
+        raise ValueError(f"the thread ({length} m) is too short to reach its end point {distance:.4g} m away")
+    mid = 0.5 * (start + end)
+    d = direction / np.linalg.norm(direction)
+
+    def legs(k: float) -> float:
+        apex = mid + k * d
+        return float(np.linalg.norm(apex - start) + np.linalg.norm(end - apex))
+
+    lo, hi = 0.0, length
+    for _ in range(100):  # bisection: the legs' length grows monotonically with k
+        k = 0.5 * (lo + hi)
+        lo, hi = (k, hi) if legs(k) < length else (lo, k)
+    apex = mid + hi * d
+    leg = float(np.linalg.norm(apex - start))
+    s = np.concatenate([[0.0], np.cumsum(model.seg_rest_length)])
+    first = s <= leg
+    pos = np.empty((len(s), 3))
+    pos[first] = start + s[first, None] / leg * (apex - start)
+    rest = (s[~first] - leg) / max(length - leg, 1e-300)
+    pos[~first] = apex + np.minimum(rest, 1.0)[:, None] * (end - apex)
+    state = RodState.straight(model, start, end - start)
+    state.node_pos[:] = pos
+    state.node_pos_prev[:] = pos
+    z = np.array([0.0, 0.0, 1.0])
+    for j, e in enumerate(np.diff(pos, axis=0)):
+        state.seg_quat[j] = quat_from_two_vectors(z, e / np.linalg.norm(e))
+    return state
 
 
 def two_bar_suturing(

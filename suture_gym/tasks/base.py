@@ -1,8 +1,13 @@
 """What a task reads (:class:`Observables`), and the machinery shared by the tasks: named reward terms that sum
 exactly to the reward, events (punctures, exits), stitch bookkeeping, success, failure and goals.
 
-Tasks never touch the physics: the simulation facade hands them an :class:`Observables` snapshot (copies of
-plain arrays, SI units) after every env step, and they return the reward terms and the episode flags.
+Tasks never step the physics: the simulation facade hands them an :class:`Observables` snapshot (copies of
+plain arrays, SI units) after every env step, and they return the reward terms and the episode flags. A task is
+the unit of extension: one class declares its env id, time limit and config defaults (``ENV_ID``,
+``MAX_EPISODE_STEPS``, ``CONFIG``, an optional section of its own, ``PARAMS``), its reward terms (one
+``term_<name>(ctx)`` method per name in ``TERMS``, reading the :class:`StepContext` of the step), its config
+check, episode initialisation (``initial_suture``, ``start_phase``) and success; one
+:func:`~suture_gym.envs.registry.register_task` line registers it.
 
 Reward terms (each reported as ``info["reward_<name>"]``; a task uses a subset, in the order of its ``TERMS``;
 ``w_*`` are the :class:`~suture_gym.envs.config.RewardConfig` weights):
@@ -52,6 +57,7 @@ from typing import ClassVar
 
 import numpy as np
 
+from suture_gym.sim.rod import RodModel, RodState
 from suture_gym.tasks.geometry import PlannedArc
 
 
@@ -172,6 +178,42 @@ class TaskOutcome:
     failed: bool
 
 
+@dataclass(frozen=True)
+class StepContext:
+    """What the reward terms of one step read (built by :meth:`Task._advance` after the bookkeeping).
+
+    Attributes:
+        obs: the observables after the step; ``action`` the raw ``(6,)`` action.
+        exited_before: the current stitch had its final exit before this step.
+        arc_before: the current planned stitch before this step.
+        events: ``entry``, ``exit`` and ``puncture`` term values of this step's events.
+        potential, previous_potential: ``Phi`` after and before the step.
+        thread, previous_thread: thread through the stitch (capped at the target) after and before, m.
+        previous_gap: mean wound gap before the step, m.
+        success: the task is achieved; ``newly_succeeded``: for the first time this step.
+        cost: tissue-force cost (>= 0).
+        outside: the tip left the workspace; ``missed``: see :class:`TaskOutcome`; ``failed``: the episode ends
+            in failure.
+    """
+
+    obs: Observables
+    action: np.ndarray
+    exited_before: bool
+    arc_before: PlannedArc
+    events: dict
+    potential: float
+    previous_potential: float
+    thread: float
+    previous_thread: float
+    previous_gap: float
+    success: bool
+    newly_succeeded: bool
+    cost: float
+    outside: bool
+    missed: bool
+    failed: bool
+
+
 class Task(ABC):
     """Base of the suturing tasks. Subclasses set the class attributes and the goal methods.
 
@@ -185,14 +227,43 @@ class Task(ABC):
         gap_rest: mean wound gap at rest, m (0 without a wound; only tasks with a wound use it).
         end_on_tear: a tear ends the episode as a failure.
         end_on_miss: a miss (see :class:`TaskOutcome`) ends the episode as a failure.
+        params: the task's own config section (an instance of :attr:`PARAMS`; default its defaults).
     """
 
     #: Registered name (``EnvConfig.task``).
     NAME: ClassVar[str] = ""
+    #: Gymnasium id of the flat env (:func:`~suture_gym.envs.registry.register_task`).
+    ENV_ID: ClassVar[str] = ""
+    #: Gymnasium id of the goal-conditioned variant, or None for none.
+    GOAL_ENV_ID: ClassVar[str | None] = None
+    #: Time limit, env steps.
+    MAX_EPISODE_STEPS: ClassVar[int] = 0
+    #: The task's config defaults: nested overrides of the typed defaults of
+    #: :class:`~suture_gym.envs.config.EnvConfig` (what the registered ids use; YAML overrides them in turn).
+    CONFIG: ClassVar[dict] = {}
+    #: The task's own config section (YAML key ``task_params``): a frozen dataclass of its parameters, with
+    #: defaults, validated in ``__post_init__``; None for none. :attr:`params` holds the episode's values.
+    PARAMS: ClassVar[type | None] = None
+    #: Scene kinds (``scene.kind``) the task can be played on.
+    SCENE_KINDS: ClassVar[tuple[str, ...]] = ("pad", "wound")
+    #: The task pulls a thread through, so the config needs one (``suture.node_count >= 2``).
+    NEEDS_THREAD: ClassVar[bool] = False
+    #: The scripted surgeon's tip-angle advance while turning (rad/s) and holder speed while pulling (m/s).
+    SURGEON_TURN_RATE: ClassVar[float] = 1.0
+    SURGEON_PULL_SPEED: ClassVar[float] = 0.02
     #: Reward terms, in the order reported.
     TERMS: ClassVar[tuple[str, ...]] = ()
-    #: Start phases accepted by ``reset(options={"phase": ...})``, the first being the default.
+    #: Start phases accepted by ``reset(options={"phase": ...})``, the first being the default (the scene as
+    #: built); :meth:`start_phase` reaches the others.
     PHASES: ClassVar[tuple[str, ...]] = ("approach",)
+    #: What each start phase is, for the env docs.
+    PHASE_DOCS: ClassVar[dict[str, str]] = {
+        "approach": "the needle at rest with its tip on the first planned circle, ``plan.start_angle`` rad before "
+                    "the entry point",
+        "inserted": "the needle driven along the plan until the tip is halfway along the first arc",
+        "exited": "the needle driven along the plan until the tip is out at the far edge",
+        "first_bite": "the first stitch made and its thread pulled through by ``plan.thread_target``",
+    }
     #: Size of ``achieved_goal`` / ``desired_goal`` in the goal-conditioned variant.
     GOAL_SIZE: ClassVar[int] = 0
     #: Goal entries and their units, for the docs: (name, unit) per component.
@@ -204,7 +275,8 @@ class Task(ABC):
     NEEDS_PLANNED_ACCESS: ClassVar[bool] = False
 
     def __init__(self, arcs, reward, tear_force: float, thread_target: float, closure_target: float,
-                 workspace: np.ndarray, gap_rest: float, end_on_tear: bool = True, end_on_miss: bool = False) -> None:
+                 workspace: np.ndarray, gap_rest: float, end_on_tear: bool = True, end_on_miss: bool = False,
+                 params=None) -> None:
         if not arcs or not all(isinstance(a, PlannedArc) for a in arcs):
             raise ValueError("arcs must be a non-empty sequence of PlannedArc")
         if not (math.isfinite(tear_force) and tear_force > reward.safe_force):
@@ -221,7 +293,37 @@ class Task(ABC):
         self.gap_rest = float(gap_rest)
         self.end_on_tear = bool(end_on_tear)
         self.end_on_miss = bool(end_on_miss)
+        self.params = params if params is not None or self.PARAMS is None else self.PARAMS()
         self.state = TaskState()
+
+    # ------------------------------------------------------------------------------------------------------
+    # Hooks: config check and episode initialisation
+    # ------------------------------------------------------------------------------------------------------
+
+    @classmethod
+    def check_config(cls, config) -> None:
+        """Raise ValueError naming the key when the :class:`~suture_gym.envs.config.EnvConfig` ``config`` does
+        not suit the task (by default: ``scene.kind`` in :attr:`SCENE_KINDS`, a thread if :attr:`NEEDS_THREAD`)."""
+        if config.scene.kind not in cls.SCENE_KINDS:
+            kinds = " or ".join(repr(k) for k in cls.SCENE_KINDS)
+            raise ValueError(f"scene.kind must be {kinds} for task {cls.NAME!r}, got {config.scene.kind!r}")
+        if cls.NEEDS_THREAD and config.suture.node_count == 0:
+            raise ValueError(f"suture.node_count must be >= 2 for task {cls.NAME!r} (the thread is pulled through)")
+
+    @classmethod
+    def initial_suture(cls, suture: RodModel, swage: np.ndarray, arcs: tuple[PlannedArc, ...]) -> RodState:
+        """Episode initialisation: the thread at rest on the swage (3,) m of the approach pose; by default
+        straight along ``(0, -1, 1)`` (up and back, clear of the needle)."""
+        return RodState.straight(suture, swage, (0.0, -1.0, 1.0))
+
+    @classmethod
+    def start_phase(cls, sim, phase: str) -> None:
+        """Episode initialisation: drive the :class:`~suture_gym.envs.simulation.Simulation` ``sim`` from the
+        approach state to the start of ``phase`` (one of :attr:`PHASES` past the first); by default the scripted
+        surgeon's :func:`~suture_gym.tasks.surgeon.run_start_phase`."""
+        from suture_gym.tasks.surgeon import run_start_phase
+
+        run_start_phase(sim, phase)
 
     # ------------------------------------------------------------------------------------------------------
     # Episode
@@ -252,61 +354,106 @@ class Task(ABC):
         self.state = state.copy()
 
     def step(self, obs: Observables, action: np.ndarray) -> TaskOutcome:
-        """Reward terms and flags for the step that led to ``obs`` under ``action`` (6,)."""
-        w = self.reward
+        """Reward terms and flags for the step that led to ``obs`` under ``action`` (6,): the bookkeeping
+        (:meth:`_advance`) first, then each term of ``TERMS`` from its ``term_<name>`` method."""
+        ctx = self._advance(obs, action)
+        values = {name: getattr(self, f"term_{name}")(ctx) for name in self.TERMS}
+        return TaskOutcome(
+            terms=values,
+            reward=math.fsum(values.values()),
+            cost=ctx.cost,
+            success=ctx.success,
+            tear=obs.damaged,
+            out_of_workspace=ctx.outside,
+            missed=ctx.missed,
+            failed=ctx.failed,
+        )
+
+    def _advance(self, obs: Observables, action: np.ndarray) -> StepContext:
+        """Update the bookkeeping with ``obs`` (events, potential, thread, gap, stitch, success, end) and return
+        what the reward terms read."""
         st = self.state
-        values = dict.fromkeys(self.TERMS, 0.0)
-        if "path" in values and not st.exited:
-            d = self.arc.distance(obs.tip_pos)
-            values["path"] = -w.path * d / (d + w.path_scale)
-        event_terms = self._consume_events(obs)
-        for name, value in event_terms.items():
-            if name in values:
-                values[name] = value
-        potential = self._potential(obs)
+        w = self.reward
+        exited_before, arc_before = st.exited, self.arc
+        events = self._consume_events(obs)
         previous_potential = st.potential
-        if "progress" in values:
-            values["progress"] = w.progress * (potential - previous_potential)
-        st.potential = potential
+        st.potential = self._potential(obs)
         thread = self._thread(obs)
-        if "thread" in values:
-            values["thread"] = w.thread * (thread - st.thread) / self.thread_target
-        st.thread = thread
-        if "closure" in values:
-            values["closure"] = w.closure * (st.gap - obs.wound_gap) / self.gap_rest
-        st.gap = obs.wound_gap
+        previous_thread, st.thread = st.thread, thread
+        previous_gap, st.gap = st.gap, obs.wound_gap
+        potential = st.potential
         self._advance_stitch()
         success = self.success(obs)
-        if success and not st.succeeded:
-            st.succeeded = True
-            if "success" in values:
-                values["success"] = w.success
-        cost = max(0.0, obs.tissue_force - w.safe_force) / (self.tear_force - w.safe_force)
-        if "tissue_force" in values:
-            values["tissue_force"] = -w.tissue_force * cost
-        if "action" in values:
-            values["action"] = -w.action * float(np.mean(np.square(action)))
+        newly_succeeded = success and not st.succeeded
+        st.succeeded = st.succeeded or success
         outside = bool(np.any(obs.tip_pos < self.workspace[0]) or np.any(obs.tip_pos > self.workspace[1]))
         missed = self.missed()
         failed = not success and (outside or (obs.damaged and self.end_on_tear) or (missed and self.end_on_miss))
         if failed:
             # A failing end is absorbing and its shaping potential is 0 (Ng et al. 1999): the progress banked on
-            # the way is handed back, so ending an episode early can never pay.
-            if "progress" in values:
-                values["progress"] = -w.progress * previous_potential
-            if "failure" in values:
-                values["failure"] = -w.failure
+            # the way is handed back (term_progress), so ending an episode early can never pay.
             st.potential = 0.0
-        return TaskOutcome(
-            terms=values,
-            reward=math.fsum(values.values()),
-            cost=cost,
-            success=success,
-            tear=obs.damaged,
-            out_of_workspace=outside,
-            missed=missed,
-            failed=failed,
+        return StepContext(
+            obs=obs, action=action, exited_before=exited_before, arc_before=arc_before, events=events,
+            potential=potential, previous_potential=previous_potential, thread=thread,
+            previous_thread=previous_thread, previous_gap=previous_gap, success=success,
+            newly_succeeded=newly_succeeded,
+            cost=max(0.0, obs.tissue_force - w.safe_force) / (self.tear_force - w.safe_force),
+            outside=outside, missed=missed, failed=failed,
         )
+
+    # ------------------------------------------------------------------------------------------------------
+    # Reward terms: one method ``term_<name>(ctx) -> float`` per name in TERMS (formulas in the module doc)
+    # ------------------------------------------------------------------------------------------------------
+
+    def term_path(self, ctx: StepContext) -> float:
+        """``-w_path d / (d + path_scale)``, ``d`` the tip's distance to the stitch's circle (m); 0 once exited."""
+        if ctx.exited_before:
+            return 0.0
+        d = ctx.arc_before.distance(ctx.obs.tip_pos)
+        return -self.reward.path * d / (d + self.reward.path_scale)
+
+    def term_progress(self, ctx: StepContext) -> float:
+        """``w_progress (Phi' - Phi)``; ``-w_progress Phi`` on a failing end (its potential is 0)."""
+        if ctx.failed:
+            return -self.reward.progress * ctx.previous_potential
+        return self.reward.progress * (ctx.potential - ctx.previous_potential)
+
+    def term_entry(self, ctx: StepContext) -> float:
+        """``w_entry max(0, 1 - e / access_tolerance)`` at the stitch's first puncture, ``e`` its error (m)."""
+        return ctx.events["entry"]
+
+    def term_exit(self, ctx: StepContext) -> float:
+        """``w_exit max(0, 1 - e / access_tolerance)`` at the stitch's final exit, ``e`` its error (m)."""
+        return ctx.events["exit"]
+
+    def term_puncture(self, ctx: StepContext) -> float:
+        """``+w_puncture`` per new planned hole, ``-w_puncture`` per unplanned one, 0 for a re-entered hole."""
+        return ctx.events["puncture"]
+
+    def term_thread(self, ctx: StepContext) -> float:
+        """``w_thread (min(L', T) - min(L, T)) / T``, ``L`` the thread (m) through the stitch's exit."""
+        return self.reward.thread * (ctx.thread - ctx.previous_thread) / self.thread_target
+
+    def term_closure(self, ctx: StepContext) -> float:
+        """``w_closure (g - g') / g0``, ``g`` the mean wound gap (m), ``g0`` the gap at rest."""
+        return self.reward.closure * (ctx.previous_gap - ctx.obs.wound_gap) / self.gap_rest
+
+    def term_success(self, ctx: StepContext) -> float:
+        """``w_success`` once, on the step the task succeeds."""
+        return self.reward.success if ctx.newly_succeeded else 0.0
+
+    def term_failure(self, ctx: StepContext) -> float:
+        """``-w_failure`` once, on the step the episode ends in failure."""
+        return -self.reward.failure if ctx.failed else 0.0
+
+    def term_tissue_force(self, ctx: StepContext) -> float:
+        """``-w_tissue_force cost``, ``cost = max(0, F - safe_force) / (tear_force - safe_force)``, ``F`` in N."""
+        return -self.reward.tissue_force * ctx.cost
+
+    def term_action(self, ctx: StepContext) -> float:
+        """``-w_action mean(a^2)`` of the raw action."""
+        return -self.reward.action * float(np.mean(np.square(ctx.action)))
 
     def missed(self) -> bool:
         """Whether the current stitch was entered or exited farther than ``access_tolerance`` from the plan, in a

@@ -21,6 +21,10 @@ class NeedleInsert(Task):
     """
 
     NAME = "needle_insert"
+    ENV_ID = "SutureGym/NeedleInsert-v0"
+    GOAL_ENV_ID = "SutureGym/NeedleInsertGoal-v0"
+    MAX_EPISODE_STEPS = 600
+    CONFIG = {}
     TERMS = ("path", "progress", "entry", "exit", "puncture", "success", "failure", "tissue_force", "action")
     PHASES = ("approach", "inserted")
     NEEDS_PLANNED_ACCESS = True

@@ -21,6 +21,17 @@ class SutureThrow(Task):
     """
 
     NAME = "suture_throw"
+    ENV_ID = "SutureGym/SutureThrow-v0"
+    GOAL_ENV_ID = "SutureGym/SutureThrowGoal-v0"
+    MAX_EPISODE_STEPS = 2000
+    CONFIG = {
+        "scene": {"kind": "wound", "size": (0.012, 0.012, 0.008)},
+        "suture": {"node_count": 31, "length": 0.03},
+        "observation": {"suture_samples": 4},
+        "reward": {"failure": 20.0},
+    }
+    SCENE_KINDS = ("wound",)
+    NEEDS_THREAD = True
     TERMS = ("path", "progress", "entry", "exit", "puncture", "thread", "success", "failure", "tissue_force",
              "action")
     PHASES = ("approach", "inserted", "exited")

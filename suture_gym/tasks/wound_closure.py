@@ -4,7 +4,13 @@ from __future__ import annotations
 
 import numpy as np
 
+from suture_gym.sim.rod import RodModel, RodState
+from suture_gym.sim.scenes import tent_rod
 from suture_gym.tasks.base import Observables, Task
+from suture_gym.tasks.geometry import PlannedArc
+
+#: Distance outside the first entry at which the thread's free end starts, m.
+TAIL_OFFSET = 8.0e-3
 
 
 class WoundClosure(Task):
@@ -19,11 +25,35 @@ class WoundClosure(Task):
     """
 
     NAME = "wound_closure"
+    ENV_ID = "SutureGym/WoundClosure-v0"
+    GOAL_ENV_ID = "SutureGym/WoundClosureGoal-v0"
+    MAX_EPISODE_STEPS = 5000
+    CONFIG = {
+        "scene": {"kind": "wound", "size": (0.03, 0.012, 0.008)},
+        "suture": {"node_count": 86, "length": 0.085, "knot_tail": 0.008},
+        "plan": {"stitches": 3},
+        "observation": {"suture_samples": 4},
+        "reward": {"failure": 30.0},
+    }
+    SCENE_KINDS = ("wound",)
+    NEEDS_THREAD = True
+    #: The running suture's three stitches (about 7 rad of turning each) must fit, with their transits and the
+    #: final tightening pull, into the 25 s time limit: the surgeon turns and pulls twice as fast.
+    SURGEON_TURN_RATE = 2.0
+    SURGEON_PULL_SPEED = 0.04
     TERMS = ("path", "progress", "entry", "exit", "puncture", "thread", "closure", "success", "failure",
              "tissue_force", "action")
     PHASES = ("approach", "first_bite")
     GOAL_SIZE = 1
     GOAL_LAYOUT = (("wound_gap", "m"),)
+
+    @classmethod
+    def initial_suture(cls, suture: RodModel, swage: np.ndarray, arcs: tuple[PlannedArc, ...]) -> RodState:
+        """The thread laid from the swage up and back (along ``(0, -1, 1)``) and down to a free end
+        :data:`TAIL_OFFSET` outside the first entry point (and a quarter of that above it), in two straight legs
+        (:func:`~suture_gym.sim.scenes.tent_rod`)."""
+        tail = arcs[0].entry + np.array([0.0, -TAIL_OFFSET, 0.25 * TAIL_OFFSET])
+        return tent_rod(suture, swage, tail, np.array([0.0, -1.0, 1.0]))
 
     def achieved_goal(self, obs: Observables) -> np.ndarray:
         return np.array([obs.wound_gap])

@@ -1,0 +1,138 @@
+"""Per-id env classes and their documentation, generated from the task class at registration.
+
+:func:`env_class` makes the env class of one registered id (a subclass of
+:class:`~suture_gym.envs.base.SutureEnv` or :class:`~suture_gym.envs.base.SutureGoalEnv` that adds nothing but
+its docstring), so ``help(env.unwrapped)`` shows a Gymnasium-MuJoCo-v5-style page: Action Space, Observation
+Space (every index with its unit, default config), Rewards (each term's formula and default weight), Starting
+State, Episode End and Arguments. The text is built from the task class (its docstring, ``TERMS`` and their
+``term_<name>`` docstrings, ``PHASES``, ``MAX_EPISODE_STEPS``) and its default config, so it cannot drift from
+what the env does.
+"""
+
+from __future__ import annotations
+
+import inspect
+from dataclasses import fields
+
+from suture_gym.tasks.base import Task
+
+#: Section titles of the generated docstrings, in order.
+SECTIONS = ("Action Space", "Observation Space", "Rewards", "Starting State", "Episode End", "Arguments")
+
+
+def _section(title: str, lines: list[str]) -> list[str]:
+    return ["", title, "-" * len(title), *lines]
+
+
+def _action_lines(config) -> list[str]:
+    a = config.action
+    return [
+        "``Box(-1, 1, (6,), float32)``; a non-finite action raises ValueError, finite ones outside the box are "
+        "applied as given.",
+        f"* ``wrench`` (default ``action.mode = {a.mode!r}``): ``[force (3) N, torque (3) N m]`` on the needle "
+        f"holder = action times ``({a.max_force} N x3, {a.max_torque} N m x3)``, world frame, torque about the "
+        "grip point, held over the env step.",
+        f"* ``pose_delta``: the holder's target moves by ``action[:3] * {a.max_translation}`` m and turns by the "
+        f"rotation vector ``action[3:] * {a.max_rotation}`` rad per step; a virtual coupling "
+        f"({a.coupling_linear_stiffness} N/m, {a.coupling_angular_stiffness} N m/rad) pulls the needle to it.",
+        f"One env step is ``solver.substeps = {config.solver.substeps}`` substeps of ``solver.dt = "
+        f"{config.solver.dt}`` s.",
+    ]
+
+
+def _observation_lines(task: type[Task], config, goal_conditioned: bool) -> list[str]:
+    from suture_gym.envs.spaces import observation_layout, observation_size, observation_table
+
+    layout = observation_layout(config)
+    size = observation_size(layout)
+    head = f"``Box(-inf, inf, ({size},), float32)`` with the default config (positions relative to the current "
+    head += "planned arc's centre; thread samples, ``pose_delta`` and ``observation.privileged`` add entries):"
+    lines = [head, "", "=====  ==============================  =======  ==========================================="]
+    lines.append("index  name                            unit     description")
+    lines.append(lines[2])
+    for index, name, unit, description in observation_table(layout):
+        lines.append(f"{index:<5d}  {name:<30s}  {unit:<7s}  {description}")
+    lines.append(lines[2])
+    if goal_conditioned:
+        goal = ", ".join(f"{name} ({unit})" for name, unit in task.GOAL_LAYOUT)
+        lines += ["", f"Goal-conditioned: ``Dict(observation=<the above>, achieved_goal=Box({task.GOAL_SIZE}), "
+                  f"desired_goal=Box({task.GOAL_SIZE}))``, goal entries: {goal}."]
+    return lines
+
+
+def _reward_lines(task: type[Task], config, goal_conditioned: bool) -> list[str]:
+    weights = {f.name: getattr(config.reward, f.name) for f in fields(config.reward)}
+    lines = ["The reward is ``math.fsum`` of the terms below, each reported as ``info['reward_<term>']``; "
+             "``w_<term>`` is the ``reward.<term>`` weight (default in brackets)."]
+    terms = task.GOAL_TERMS if goal_conditioned else task.TERMS
+    for name in terms:
+        if name == "goal":
+            doc = ("sparse ``-1`` until the goal is reached, else 0 (``reward.goal = 'dense'``: minus the task's "
+                   "goal distance in [0, 1)); recomputed by ``compute_reward`` for relabelled goals.")
+        else:
+            doc = " ".join(inspect.getdoc(getattr(task, f"term_{name}")).split())
+        weight = f" [{weights[name]}]" if name in weights else ""
+        lines.append(f"* ``{name}``{weight}: {doc}")
+    return lines
+
+
+def _start_lines(task: type[Task], config) -> list[str]:
+    lines = [f"``reset(options={{'phase': ...}})`` picks the start phase (default ``{task.PHASES[0]!r}``):"]
+    for phase in task.PHASES:
+        lines.append(f"* ``{phase}``: {task.PHASE_DOCS.get(phase, 'see the task class')}.")
+    lines.append("Domain randomisation (``randomization``) samples the tissue stiffness, puncture force, wound gap "
+                 "and the needle's start pose at every reset; all off by default.")
+    return lines
+
+
+def _end_lines(task: type[Task], config) -> list[str]:
+    seconds = task.MAX_EPISODE_STEPS * config.solver.dt * config.solver.substeps
+    return [
+        "``terminated`` on success; on failure: the tip leaves the workspace (the tissue's box grown by "
+        f"``termination.workspace_margin = {config.termination.workspace_margin}`` m), a tear (a coupling force "
+        f"above ``coupling.tear_force = {config.coupling.tear_force}`` N, with ``termination.end_on_tear``), or "
+        "(flat ids of tasks that need every stitch on the plan, with ``termination.end_on_miss``) a stitch "
+        "entered or exited off the plan.",
+        f"``truncated`` at the time limit, {task.MAX_EPISODE_STEPS} steps ({seconds:g} s with the default "
+        "config), and with ``info['diverged'] = True`` when the simulation diverges.",
+    ]
+
+
+def _argument_lines(task: type[Task]) -> list[str]:
+    return [
+        "``gym.make(id, config=None, render_mode=None, action_mode=None)``:",
+        "* ``config``: None (the task's defaults), an ``EnvConfig``, a nested mapping of overrides or the path of "
+        "a YAML file of them (``configs/envs/*.yaml``); unknown keys and bad values raise ValueError naming the "
+        f"dotted key. The task's defaults: ``default_config({task.NAME!r})``.",
+        "* ``render_mode``: None or ``'rgb_array'``.",
+        "* ``action_mode``: ``'wrench'`` or ``'pose_delta'``, overriding ``action.mode``.",
+    ]
+
+
+def env_docstring(task: type[Task], goal_conditioned: bool) -> str:
+    """The docstring of the env class of ``task`` (flat or goal-conditioned), from the task class and its
+    default config."""
+    from suture_gym.envs.config import default_config
+
+    config = default_config(task.NAME)
+    env_id = task.GOAL_ENV_ID if goal_conditioned else task.ENV_ID
+    lines = [f"``{env_id}``: {inspect.getdoc(task)}"]
+    lines += _section("Action Space", _action_lines(config))
+    lines += _section("Observation Space", _observation_lines(task, config, goal_conditioned))
+    lines += _section("Rewards", _reward_lines(task, config, goal_conditioned))
+    lines += _section("Starting State", _start_lines(task, config))
+    lines += _section("Episode End", _end_lines(task, config))
+    lines += _section("Arguments", _argument_lines(task))
+    return "\n".join(lines) + "\n"
+
+
+def env_class(task: type[Task], goal_conditioned: bool) -> type:
+    """The env class of ``task``'s flat (or goal-conditioned) id: ``<Task>Env`` (``<Task>GoalEnv``), a subclass
+    of :class:`~suture_gym.envs.base.SutureEnv` (:class:`~suture_gym.envs.base.SutureGoalEnv`) whose docstring
+    is :func:`env_docstring` and whose default task is ``task``."""
+    from suture_gym.envs.base import SutureEnv, SutureGoalEnv
+
+    base = SutureGoalEnv if goal_conditioned else SutureEnv
+    name = task.__name__ + ("GoalEnv" if goal_conditioned else "Env")
+    namespace = {"__doc__": env_docstring(task, goal_conditioned), "__qualname__": name, "TASK": task.NAME}
+    return type(name, (base,), namespace)
