@@ -33,16 +33,21 @@ from suture_gym.sim.coupling import (
     project_needle_rows,
     project_onto_path,
     project_particles,
-    rigid_apply,
-    rigid_generalized_inv_mass,
     surface_normal,
     track_sigma,
     xpbd_delta_lambda,
 )
 from suture_gym.sim.mesh import box_tet_grid
 from suture_gym.sim.model import TissueMaterial, TissueModel
-from suture_gym.sim.needle import NeedleModel, NeedleState, apply_point_impulse, point_inv_mass, world_inv_inertia
+from suture_gym.sim.needle import NeedleModel, NeedleState
 from suture_gym.sim.quat import quat_from_axis_angle, quat_mul, quat_to_matrix
+from suture_gym.sim.rigid import (
+    apply_point_impulse,
+    point_inv_mass,
+    rigid_apply,
+    rigid_generalized_inv_mass,
+    world_inv_inertia,
+)
 from suture_gym.sim.rod import RodModel, SutureParams
 
 RNG = np.random.default_rng(7)

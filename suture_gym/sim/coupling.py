@@ -100,6 +100,7 @@ import numpy as np
 from numba import njit
 
 from suture_gym.sim.bvh import BVH, build_bvh, refit_bvh
+from suture_gym.sim.checks import is_real
 from suture_gym.sim.collision import (
     TriangleSurface,
     build_triangle_surface,
@@ -107,8 +108,15 @@ from suture_gym.sim.collision import (
     segment_crossings,
     signed_distance,
 )
-from suture_gym.sim.needle import point_inv_mass_matrix
-from suture_gym.sim.quat import quat_from_rotation_vector, quat_mul, quat_normalize, quat_to_matrix
+from suture_gym.sim.quat import quat_to_matrix
+from suture_gym.sim.rigid import (
+    body_point,
+    body_points_world,
+    point_inv_mass_matrix,
+    rigid_apply,
+    rigid_generalized_inv_mass,
+    world_inv_inertia,
+)
 
 #: Node states of paper section 4.1.
 NODE_HEAD = 0
@@ -128,10 +136,6 @@ PATH_ROW_VERTICES = 8
 #: Below this length (m) a direction is undefined and the constraint is skipped (degenerate geometry).
 _TINY_LENGTH = 1.0e-12
 
-
-
-def _is_real(value) -> bool:
-    return isinstance(value, numbers.Real) and not isinstance(value, bool)
 
 
 @dataclass(frozen=True)
@@ -202,12 +206,12 @@ class CouplingParams:
             "broad_phase_margin",
         ):
             value = getattr(self, name)
-            if not (_is_real(value) and math.isfinite(value) and value > 0.0):
+            if not (is_real(value) and math.isfinite(value) and value > 0.0):
                 raise ValueError(f"CouplingParams.{name} must be a finite number > 0, got {value!r}")
             object.__setattr__(self, name, float(value))
         for name in ("needle_axial_friction", "tip_friction"):
             value = getattr(self, name)
-            if not (_is_real(value) and math.isfinite(value) and value >= 0.0):
+            if not (is_real(value) and math.isfinite(value) and value >= 0.0):
                 raise ValueError(f"CouplingParams.{name} must be a finite number >= 0, got {value!r}")
             object.__setattr__(self, name, float(value))
         if self.path_spacing_min > self.path_spacing_max:
@@ -317,42 +321,6 @@ def project_particles(c, grads, inv_mass, alpha_tilde, lam):
 
 
 # ----------------------------------------------------------------------------------------------------------
-# Rigid-body helpers (Muller et al. 2020, "Detailed rigid body simulation with extended position based dynamics")
-# ----------------------------------------------------------------------------------------------------------
-
-
-@njit(cache=True)
-def rigid_generalized_inv_mass(inv_mass, inv_inertia_world, lin, ang):
-    """``w = |lin|^2 / m + ang^T I^-1 ang`` (1/kg) of a rigid body for a constraint whose gradients at body
-    points ``r_i`` are ``g_i``: ``lin = sum g_i``, ``ang = sum r_i x g_i`` (world frame)."""
-    return inv_mass * (lin @ lin) + ang @ (inv_inertia_world @ ang)
-
-
-@njit(cache=True)
-def rigid_apply(pos, quat, inv_mass, inv_inertia_world, lin, ang, dlam):
-    """Rigid XPBD pose update for multiplier step ``dlam`` of a constraint with gradients (``lin``, ``ang``):
-    ``x += dlam lin / m``; the orientation turns by ``dlam I^-1 ang`` (exact exponential map). Updates ``pos``
-    (3,) and ``quat`` (4,) in place."""
-    for i in range(3):
-        pos[i] += inv_mass * dlam * lin[i]
-    dtheta = dlam * (inv_inertia_world @ ang)
-    quat[:] = quat_normalize(quat_mul(quat_from_rotation_vector(dtheta), quat))
-
-
-@njit(cache=True)
-def _world_inv_inertia(quat, inv_inertia_body):
-    r = quat_to_matrix(quat)
-    return r @ inv_inertia_body @ r.T
-
-
-@njit(cache=True)
-def _body_point(pos, quat, point_body):
-    """World position (3,) of body-frame point ``point_body`` for pose (``pos``, ``quat``)."""
-    r = quat_to_matrix(quat)
-    return pos + r @ point_body
-
-
-# ----------------------------------------------------------------------------------------------------------
 # Static description and state
 # ----------------------------------------------------------------------------------------------------------
 
@@ -416,7 +384,7 @@ class CouplingModel:
         params = CouplingParams() if params is None else params
         if not isinstance(params, CouplingParams):
             raise ValueError(f"params must be CouplingParams, got {type(params).__name__}")
-        if not (_is_real(knot_tail) and math.isfinite(knot_tail) and knot_tail >= 0.0):
+        if not (is_real(knot_tail) and math.isfinite(knot_tail) and knot_tail >= 0.0):
             raise ValueError(f"knot_tail must be a finite number >= 0 m, got {knot_tail!r}")
         needle_nodes = np.asarray(needle.node_pos_body, dtype=np.float64)
         nn = needle_nodes.shape[0]
@@ -652,16 +620,8 @@ class CouplingWork:
 @njit(cache=True)
 def strand_positions_kernel(needle_pos, needle_quat, needle_node_body, suture_q, out):
     """Strand node positions: needle nodes from the pose, then suture nodes 1.. . Writes ``out`` (M, 3), m."""
-    r = quat_to_matrix(needle_quat)
     nn = needle_node_body.shape[0]
-    for k in range(nn):
-        for i in range(3):
-            out[k, i] = (
-                needle_pos[i]
-                + r[i, 0] * needle_node_body[k, 0]
-                + r[i, 1] * needle_node_body[k, 1]
-                + r[i, 2] * needle_node_body[k, 2]
-            )
+    body_points_world(needle_pos, needle_quat, needle_node_body, out[:nn])
     for j in range(1, suture_q.shape[0]):
         out[nn + j - 1] = suture_q[j]
 
@@ -1117,11 +1077,11 @@ def _project_contact(
     i0 = tri_vertices[tri, 0]
     i1 = tri_vertices[tri, 1]
     i2 = tri_vertices[tri, 2]
-    q = _body_point(needle_pos, needle_quat, node_body)
+    q = body_point(needle_pos, needle_quat, node_body)
     c = node_surface_constraint(q, tissue_q[i0], tissue_q[i1], tissue_q[i2], bary, normal, eps) - floor
     if c >= 0.0 and lam == 0.0:
         return lam
-    inv_inertia = _world_inv_inertia(needle_quat, needle_inv_inertia_body)
+    inv_inertia = world_inv_inertia(needle_quat, needle_inv_inertia_body)
     ang = np.cross(q - needle_pos, normal)
     w = rigid_generalized_inv_mass(needle_inv_mass, inv_inertia, normal, ang)
     w += bary[0] ** 2 * tissue_inv_mass[i0] + bary[1] ** 2 * tissue_inv_mass[i1] + bary[2] ** 2 * tissue_inv_mass[i2]
@@ -1174,7 +1134,7 @@ def _project_anchor(
     w_tissue = (
         bary[0] ** 2 * tissue_inv_mass[i0] + bary[1] ** 2 * tissue_inv_mass[i1] + bary[2] ** 2 * tissue_inv_mass[i2]
     )
-    q = _body_point(needle_pos, needle_quat, node_body)
+    q = body_point(needle_pos, needle_quat, node_body)
     p = bary[0] * tissue_q[i0] + bary[1] * tissue_q[i1] + bary[2] * tissue_q[i2]
     d = p + (eps + floor) * normal - q
     friction_out[3] = 0.0
@@ -1182,7 +1142,7 @@ def _project_anchor(
         offset = d - (d @ normal) * normal
         friction_out[3] = math.sqrt(offset @ offset)
         return lam
-    inv_inertia = _world_inv_inertia(needle_quat, needle_inv_inertia_body)
+    inv_inertia = world_inv_inertia(needle_quat, needle_inv_inertia_body)
     r = q - needle_pos
     k = point_inv_mass_matrix(needle_inv_mass, inv_inertia, r)
     for a in range(3):
@@ -1278,8 +1238,8 @@ def project_needle_rows(
                 needle_pos, needle_quat, tissue_q,
             )  # fmt: skip
             continue
-        inv_inertia = _world_inv_inertia(needle_quat, needle_inv_inertia_body)
-        q = _body_point(needle_pos, needle_quat, needle_node_body[i])
+        inv_inertia = world_inv_inertia(needle_quat, needle_inv_inertia_body)
+        q = body_point(needle_pos, needle_quat, needle_node_body[i])
         r = q - needle_pos
         idx = row_tissue[i]
         wt = row_weight[i]
@@ -1300,10 +1260,10 @@ def project_needle_rows(
         cap = strand_friction[i] * dt * dt
         if cap <= 0.0:
             continue
-        inv_inertia = _world_inv_inertia(needle_quat, needle_inv_inertia_body)
-        q = _body_point(needle_pos, needle_quat, needle_node_body[i])
+        inv_inertia = world_inv_inertia(needle_quat, needle_inv_inertia_body)
+        q = body_point(needle_pos, needle_quat, needle_node_body[i])
         r = q - needle_pos
-        q0 = _body_point(needle_pos_prev, needle_quat_prev, needle_node_body[i])
+        q0 = body_point(needle_pos_prev, needle_quat_prev, needle_node_body[i])
         p = _tissue_point(tissue_q, idx, wt)
         p0 = _tissue_point(tissue_q_prev, idx, wt)
         slip = ((q - q0) - (p - p0)) @ t
@@ -1321,7 +1281,7 @@ def project_needle_rows(
 def _strand_point(node, needle_node_count, needle_pos, needle_quat, needle_node_body, suture_q):
     """World position (3,) of strand node ``node`` (needle node from the pose, or suture node)."""
     if node < needle_node_count:
-        return _body_point(needle_pos, needle_quat, needle_node_body[node])
+        return body_point(needle_pos, needle_quat, needle_node_body[node])
     return suture_q[node - needle_node_count + 1].copy()
 
 
@@ -1384,7 +1344,7 @@ def project_access_rows(
                 ang += np.cross(points[e] - needle_pos, g)
             else:
                 w += suture_inv_mass[node - nn + 1] * (g @ g)
-        inv_inertia = _world_inv_inertia(needle_quat, needle_inv_inertia_body)
+        inv_inertia = world_inv_inertia(needle_quat, needle_inv_inertia_body)
         if lin @ lin + ang @ ang > 0.0:
             w += rigid_generalized_inv_mass(needle_inv_mass, inv_inertia, lin, ang)
         dlam = xpbd_delta_lambda(c, w, 0.0, access_lambda[a])

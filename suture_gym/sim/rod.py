@@ -48,6 +48,7 @@ from dataclasses import dataclass, field, replace
 import numpy as np
 from numba import njit
 
+from suture_gym.sim.checks import finite_array, is_real, require_non_negative, require_positive
 from suture_gym.sim.needle import NeedleModel, NeedleState, needle_predict, needle_update_velocities
 from suture_gym.sim.quat import (
     quat_from_two_vectors,
@@ -69,29 +70,6 @@ _FRAME_RESIDUAL_WEIGHT = 1.0e-3
 _MAX_RELEASE_PASSES = 4
 
 
-def _is_real(value) -> bool:
-    return isinstance(value, numbers.Real) and not isinstance(value, bool)
-
-
-def _require_positive(name: str, value) -> None:
-    if not (_is_real(value) and math.isfinite(value) and value > 0.0):
-        raise ValueError(f"{name} must be a finite number > 0, got {value!r}")
-
-
-def _require_non_negative(name: str, value) -> None:
-    if not (_is_real(value) and math.isfinite(value) and value >= 0.0):
-        raise ValueError(f"{name} must be a finite number >= 0, got {value!r}")
-
-
-def _finite_array(name: str, value, shape: tuple) -> np.ndarray:
-    arr = np.asarray(value, dtype=np.float64)
-    if arr.shape != shape:
-        raise ValueError(f"{name} must have shape {shape}, got {arr.shape}")
-    if not np.all(np.isfinite(arr)):
-        raise ValueError(f"{name} must be finite")
-    return arr
-
-
 @dataclass(frozen=True)
 class SutureMaterial:
     """Elastic material of the thread. Defaults: nylon 6,6 monofilament (E ~ 2-3 GPa, nu ~ 0.39, 1140 kg/m^3).
@@ -107,10 +85,10 @@ class SutureMaterial:
     density: float = 1140.0
 
     def __post_init__(self) -> None:
-        _require_positive("youngs_modulus", self.youngs_modulus)
-        if not (_is_real(self.poisson_ratio) and -1.0 < self.poisson_ratio <= 0.5):
+        require_positive("youngs_modulus", self.youngs_modulus)
+        if not (is_real(self.poisson_ratio) and -1.0 < self.poisson_ratio <= 0.5):
             raise ValueError(f"poisson_ratio must be in (-1, 0.5], got {self.poisson_ratio!r}")
-        _require_positive("density", self.density)
+        require_positive("density", self.density)
 
     @property
     def shear_modulus(self) -> float:
@@ -137,15 +115,15 @@ class SutureParams:
     damping: float = 1.0
 
     def __post_init__(self) -> None:
-        _require_positive("length", self.length)
-        _require_positive("radius", self.radius)
+        require_positive("length", self.length)
+        require_positive("radius", self.radius)
         if isinstance(self.node_count, bool) or not isinstance(self.node_count, numbers.Integral):
             raise ValueError(f"node_count must be an integer >= 2, got {self.node_count!r}")
         if self.node_count < 2:
             raise ValueError(f"node_count must be >= 2, got {self.node_count}")
         if not isinstance(self.material, SutureMaterial):
             raise ValueError(f"material must be a SutureMaterial, got {type(self.material).__name__}")
-        _require_non_negative("damping", self.damping)
+        require_non_negative("damping", self.damping)
 
 
 @dataclass(frozen=True)
@@ -253,8 +231,8 @@ class RodState:
     @classmethod
     def straight(cls, model: RodModel, start, direction) -> RodState:
         """The rod at rest on a straight line from ``start`` (3,) m along ``direction`` (3,), untwisted."""
-        x0 = _finite_array("start", start, (3,))
-        d = _finite_array("direction", direction, (3,))
+        x0 = finite_array("start", start, (3,))
+        d = finite_array("direction", direction, (3,))
         norm = float(np.linalg.norm(d))
         if norm == 0.0:
             raise ValueError("direction must be non-zero")
@@ -352,7 +330,7 @@ class StaticObstacles:
             raise ValueError(f"sphere_center ({sc.shape[0]}) and sphere_radius ({sr.shape[0]}) counts differ")
         if not (np.all(np.isfinite(sc)) and np.all(np.isfinite(sr)) and np.all(sr > 0.0)):
             raise ValueError("sphere_center must be finite and sphere_radius finite and > 0")
-        _require_non_negative("friction", self.friction)
+        require_non_negative("friction", self.friction)
         object.__setattr__(self, "plane_point", pp)
         object.__setattr__(self, "plane_normal", pn / norms[:, None])
         object.__setattr__(self, "sphere_center", sc)
@@ -1190,10 +1168,10 @@ def rod_velocity_kernel(node_pos, node_pos_prev, dt, node_vel):
 
 def rod_predict(model: RodModel, state: RodState, dt: float, gravity, node_force=None) -> None:
     """Predict phase: store start positions, integrate gravity (3,) m/s^2 and ``node_force`` (N, 3) N."""
-    _require_positive("dt", dt)
-    g = _finite_array("gravity", gravity, (3,))
+    require_positive("dt", dt)
+    g = finite_array("gravity", gravity, (3,))
     n = model.node_count
-    f = np.zeros((n, 3)) if node_force is None else _finite_array("node_force", node_force, (n, 3))
+    f = np.zeros((n, 3)) if node_force is None else finite_array("node_force", node_force, (n, 3))
     rod_predict_kernel(
         model.node_inv_mass, g, f, model.params.damping, dt, state.node_pos, state.node_vel, state.node_pos_prev
     )
@@ -1352,7 +1330,7 @@ def rod_project(
     """
     if isinstance(iterations, bool) or not isinstance(iterations, numbers.Integral) or iterations < 1:
         raise ValueError(f"iterations must be an integer >= 1, got {iterations!r}")
-    _require_non_negative("tolerance", tolerance)
+    require_non_negative("tolerance", tolerance)
     work.begin(state)
     return int(
         rod_project_kernel(
@@ -1398,8 +1376,8 @@ def step_strands(
     project (direct rod solve with the two-way swage attachment, obstacles), update velocities.
     Returns the number of direct solves the projection used.
     """
-    _require_positive("dt", dt)
-    g = _finite_array("gravity", gravity, (3,))
+    require_positive("dt", dt)
+    g = finite_array("gravity", gravity, (3,))
     has_needle = needle_model is not None and needle_state is not None
     if has_needle:
         needle_predict(needle_model, needle_state, np.zeros(6) if needle_wrench is None else needle_wrench, dt, g)
