@@ -32,7 +32,6 @@ from suture_gym.sim.coupling import (
     path_spacing_count,
     project_needle_rows,
     project_onto_path,
-    project_particles,
     surface_normal,
     track_sigma,
     xpbd_delta_lambda,
@@ -52,6 +51,14 @@ from suture_gym.sim.rod import RodModel, SutureParams
 
 RNG = np.random.default_rng(7)
 H = 1e-7  # central-difference step, m
+
+
+def project_particles(c, grads, inv_mass, alpha_tilde, lam):
+    """One XPBD projection of a constraint on point masses (Macklin et al. 2016): ``(dlambda, dx)`` with
+    ``dx_i = w_i grad_i C dlambda``; grads (k, 3), inv_mass (k,) 1/kg. The reference the kernels are checked by."""
+    w_sum = float(np.einsum("i,ij,ij->", inv_mass, grads, grads))
+    dlam = xpbd_delta_lambda(c, w_sum, alpha_tilde, lam)
+    return dlam, inv_mass[:, None] * dlam * grads
 
 
 def _fd_gradient(fn, x, h=H):
