@@ -2,6 +2,7 @@
 the tissue, readings, validation, snapshots and determinism, divergence."""
 
 import math
+from types import SimpleNamespace
 
 import numpy as np
 import pytest
@@ -153,6 +154,24 @@ def test_snapshot_restore_replays_bit_for_bit_with_coupling_active():
     _same(scene.state, snap)
     _turning(scene, 150, start=700)
     _same(scene.state, first)
+
+
+def test_solver_buffers_live_in_each_state_and_the_model_never_changes():
+    scene = two_bar_suturing()
+    rest_boxes = scene.model.coupling.surface.bvh.node_lo.tobytes() + scene.model.coupling.tet_bvh.node_hi.tobytes()
+    _turning(scene, 700)
+    work = scene.state.work
+    assert work is not None and work.model is scene.model
+    assert scene.model.coupling.surface.bvh.node_lo.tobytes() + scene.model.coupling.tet_bvh.node_hi.tobytes() == (
+        rest_boxes
+    )
+    assert work.coupling_work.surface.bvh.node_lo.tobytes() != scene.model.coupling.surface.bvh.node_lo.tobytes()
+    clone = SimpleNamespace(model=scene.model, state=scene.state.snapshot(), settings=scene.settings)
+    assert clone.state.work is None
+    _turning(scene, 100, start=700)
+    _turning(clone, 100, start=700)  # fresh buffers made by its first step replay the same substeps
+    assert clone.state.work is not work and scene.state.work is work
+    _same(clone.state, scene.state)
 
 
 def test_same_controls_give_identical_runs():

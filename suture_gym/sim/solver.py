@@ -84,7 +84,7 @@ from suture_gym.sim.coupling import (
     strand_positions_kernel,
     suture_contact_rows,
 )
-from suture_gym.sim.model import Control, Model, State
+from suture_gym.sim.model import Control, Model, State, Work
 from suture_gym.sim.needle import needle_constraint_wrench, needle_predict, needle_update_velocities
 from suture_gym.sim.quat import quat_to_matrix
 from suture_gym.sim.rod import rod_iteration_kernel, rod_predict
@@ -173,7 +173,8 @@ def _all_finite(a):
 
 @dataclass(frozen=True)
 class Solver:
-    """XPBD substep integrator. Holds hyperparameters only; all data lives in Model and State.
+    """XPBD substep integrator. Holds hyperparameters only; all data lives in Model and State (its per-substep
+    buffers in ``State.work``, made on a state's first step).
 
     Attributes:
         iterations: Gauss-Seidel sweeps per substep (>= 1). One sweep per substep with small substeps is
@@ -231,6 +232,8 @@ class Solver:
         dt = self._check_inputs(model, state, control, dt, residuals)
         if state.diverged:
             return
+        if state.work is None or state.work.model is not model:
+            state.work = Work(model)
         clock = _Clock(timings)
         self._predict(model, state, control, dt)
         clock.lap("predict")
@@ -334,19 +337,17 @@ class Solver:
         coupling = model.coupling
         if coupling is None:
             return
-        scratch = model.scratch
-        work = scratch.coupling_work
+        work = state.work.coupling_work
         suture_q = state.suture.node_pos if state.suture is not None else np.zeros((0, 3))
         strand_positions_kernel(
-            state.needle.body_pos, state.needle.body_quat, model.needle.node_pos_body, suture_q, scratch.strand_q
+            state.needle.body_pos, state.needle.body_quat, model.needle.node_pos_body, suture_q, work.strand_q
         )
         strand_positions_kernel(
             state.needle.body_pos_prev, state.needle.body_quat_prev, model.needle.node_pos_body,
             state.suture.node_pos_prev if state.suture is not None else np.zeros((0, 3)), work.strand_q_start,
         )  # fmt: skip
         coupling_detect(
-            coupling, state.coupling, work, model.tissue, state.tissue.particle_q, scratch.strand_q,
-            work.strand_q_start,
+            coupling, state.coupling, work, model.tissue, state.tissue.particle_q, work.strand_q, work.strand_q_start,
         )  # fmt: skip
         contact_floors(
             coupling.needle_node_count,
@@ -412,7 +413,7 @@ class Solver:
     @staticmethod
     def _project_coupling(model: Model, state: State, dt: float) -> None:
         """The Gauss-Seidel coupling rows of needle and suture with the tissue."""
-        coupling, work = model.coupling, model.scratch.coupling_work
+        coupling, work = model.coupling, state.work.coupling_work
         needle, needle_state = model.needle, state.needle
         tissue_inv_mass = model.tissue.particle_inv_mass
         tissue_q = state.tissue.particle_q
@@ -496,9 +497,9 @@ class Solver:
         the tissue takes their reaction (:func:`~suture_gym.sim.coupling.apply_contact_reaction`). The warm start
         is loaded as the stretch multipliers that the rod's ``begin`` reads it from.
         """
-        suture, rod_state, work = model.suture, state.suture, model.scratch.rod_work
+        suture, rod_state, work = model.suture, state.suture, state.work.rod_work
         coupling = model.coupling
-        cwork = model.scratch.coupling_work
+        cwork = state.work.coupling_work
         inv_mass = suture.node_inv_mass if coupling is None else cwork.suture_inv_mass
         contact_w = work.contact_obstacle_w if coupling is None else cwork.suture_contact_w
         work.lam[:] = 0.0
@@ -561,9 +562,9 @@ class Solver:
         """Readings after the projection: coupling forces, suture tensions (warm start), needle reaction."""
         if model.coupling is not None:
             tip_direction = quat_to_matrix(state.needle.body_quat) @ model.needle.tip_dir_body
-            coupling_finish(model.coupling, state.coupling, model.scratch.coupling_work, dt, tip_direction)
+            coupling_finish(model.coupling, state.coupling, state.work.coupling_work, dt, tip_direction)
         if model.suture is not None:
-            state.suture_tension[:] = np.linalg.norm(model.scratch.rod_work.lam[1:, :3], axis=1)
+            state.suture_tension[:] = np.linalg.norm(state.work.rod_work.lam[1:, :3], axis=1)
         if model.needle is not None:
             state.needle_reaction[:] = needle_constraint_wrench(model.needle, state.needle, dt)
 

@@ -261,7 +261,7 @@ def rigid_crossings(model: CouplingModel, work: CouplingWork, tissue_q, strand_q
     ``strand_q_start -> strand_q``, crosses a rigid face gets a contact row with that face at the crossing
     point that keeps it on the side it came from (outside: ROW_TRIANGLE, inside: ROW_WALL), whatever row it
     had; so neither a needle dragging the tissue down nor a tip cutting through it passes the base."""
-    hits = segment_crossings(strand_q_start, strand_q, model.surface, tissue_q)
+    hits = segment_crossings(strand_q_start, strand_q, work.surface, tissue_q)
     done = np.zeros(strand_q.shape[0], dtype=bool)
     for h in np.flatnonzero(model.tri_rigid[hits.crossing_tri]):
         i = hits.crossing_segment[h]
@@ -295,17 +295,17 @@ def coupling_detect(
     if strand_q.shape != (m, 3):
         raise ValueError(f"strand_q must have shape ({m}, 3), got {strand_q.shape}")
     work.strand_q[:] = strand_q
-    refit_bvh(model.surface.bvh, tissue_q)
-    refit_bvh(model.tet_bvh, tissue_q)
+    refit_bvh(work.surface.bvh, tissue_q)
+    refit_bvh(work.tet_bvh, tissue_q)
 
-    lo = model.surface.bvh.node_lo[0] - params.broad_phase_margin
-    hi = model.surface.bvh.node_hi[0] + params.broad_phase_margin
+    lo = work.surface.bvh.node_lo[0] - params.broad_phase_margin
+    hi = work.surface.bvh.node_hi[0] + params.broad_phase_margin
     near = np.flatnonzero(np.all((strand_q >= lo) & (strand_q <= hi), axis=1))
     state.strand_sdist[:] = np.inf
     state.strand_tri[:] = -1
     state.strand_bary[:] = 0.0
     if near.size:
-        sdist, tri, bary = signed_distance(strand_q[near], model.surface, tissue_q)
+        sdist, tri, bary = signed_distance(strand_q[near], work.surface, tissue_q)
         state.strand_sdist[near] = sdist
         state.strand_tri[near] = tri
         state.strand_bary[near] = bary

@@ -4,7 +4,7 @@ per-substep rows (:class:`CouplingWork`)."""
 from __future__ import annotations
 
 import math
-from dataclasses import dataclass, fields
+from dataclasses import dataclass, fields, replace
 
 import numpy as np
 
@@ -26,9 +26,8 @@ from suture_gym.sim.coupling.params import (
 class CouplingModel:
     """Static data of the interaction between one strand (needle + suture) and the tissue.
 
-    Build it with :meth:`build`. The BVH boxes inside ``surface`` and ``tet_bvh`` are scratch: every
-    detection refits them to the current tissue positions before using them, so they carry no state (but one
-    model must not be stepped from two threads at once).
+    Build it with :meth:`build`. The BVHs inside ``surface`` and ``tet_bvh`` hold the boxes of the rest shape and
+    are read-only: the detection refits copies of them held by :class:`CouplingWork`, so a model never changes.
 
     Attributes:
         params: the :class:`CouplingParams`.
@@ -42,8 +41,8 @@ class CouplingModel:
         tri_tet_local: ``(F, 3) int8`` local index (0-3) in its tet of each vertex of each boundary triangle.
         tri_rigid: ``(F,) bool`` boundary triangles whose three vertices are pinned: faces glued to a rigid
             support (the base under the tissue, a clamp), which the strand can neither pierce nor leave through.
-        surface: :class:`~suture_gym.sim.collision.TriangleSurface` of the tissue boundary.
-        tet_bvh: :class:`~suture_gym.sim.bvh.BVH` over the tissue tets (path-node location).
+        surface: :class:`~suture_gym.sim.collision.TriangleSurface` of the tissue boundary (BVH at rest).
+        tet_bvh: :class:`~suture_gym.sim.bvh.BVH` over the tissue tets at rest (path-node location).
         knot_sigma: strand coordinate of the thread's stopper knot, m (``inf`` without one; module
             docstring, detection step 6).
     """
@@ -114,8 +113,13 @@ class CouplingModel:
                 raise ValueError(f"knot_tail ({knot_tail} m) must be shorter than the suture ({suture_length:.4g} m)")
             knot_sigma = float(sigma[-1] - knot_tail)
         rigid = np.all(tissue.particle_inv_mass[tri] == 0.0, axis=1)
+        surface = build_triangle_surface(tri, rest)
+        tet_bvh = build_bvh(tets, rest)
         for array in (sigma, seg_length, friction, local, rigid):
             array.flags.writeable = False
+        for bvh in (surface.bvh, tet_bvh):
+            bvh.node_lo.flags.writeable = False
+            bvh.node_hi.flags.writeable = False
         return cls(
             params=params,
             needle_node_count=nn,
@@ -125,8 +129,8 @@ class CouplingModel:
             strand_friction=friction,
             tri_tet_local=local,
             tri_rigid=rigid,
-            surface=build_triangle_surface(tri, rest),
-            tet_bvh=build_bvh(tets, rest),
+            surface=surface,
+            tet_bvh=tet_bvh,
             knot_sigma=knot_sigma,
         )
 
@@ -249,9 +253,12 @@ class CouplingState:
 class CouplingWork:
     """Per-substep scratch: the constraint rows built by the detection and their multipliers.
 
-    Rebuilt by every :func:`coupling_detect`, so it carries no state between substeps.
+    Rebuilt by every :func:`coupling_detect`, so it carries no state between substeps; the solver keeps one
+    per :class:`~suture_gym.sim.model.State` (never in the frozen model).
 
     Attributes (M strand nodes, K = ``max_paths``, P = ``max_path_nodes``):
+        surface: the model's :class:`~suture_gym.sim.collision.TriangleSurface` with its own BVH boxes, and
+            tet_bvh: its own copy of the model's tet BVH; every detection refits both to the tissue positions.
         strand_q: ``(M, 3)`` strand node positions at detection, m; strand_q_start: ``(M, 3)`` at the start of
             the substep (filled by the solver).
         pathnode_q: ``(P, 3)`` path node positions at detection, m. pathnode_tangent: ``(P, 3)`` unit tangents.
@@ -283,6 +290,8 @@ class CouplingWork:
         m = model.strand_node_count
         k = model.params.max_paths
         p = model.params.max_path_nodes
+        self.surface = replace(model.surface, bvh=_writable_boxes(model.surface.bvh))
+        self.tet_bvh = _writable_boxes(model.tet_bvh)
         self.strand_q = np.zeros((m, 3))
         self.strand_q_start = np.zeros((m, 3))
         self.pathnode_q = np.zeros((p, 3))
@@ -307,3 +316,8 @@ class CouplingWork:
         self.access_lambda = np.zeros(2 * k)
         self.suture_inv_mass = np.zeros(model.suture_node_count)
         self.suture_contact_w = np.zeros(model.suture_node_count)
+
+
+def _writable_boxes(bvh: BVH) -> BVH:
+    """A BVH sharing ``bvh``'s (read-only) topology with its own, writable copies of the boxes."""
+    return replace(bvh, node_lo=bvh.node_lo.copy(), node_hi=bvh.node_hi.copy())

@@ -13,7 +13,7 @@ from suture_gym.sim.collision import (
     segment_crossings,
 )
 from suture_gym.sim.coupling.constraints import surface_normal
-from suture_gym.sim.coupling.model import CouplingModel, CouplingState
+from suture_gym.sim.coupling.model import CouplingModel, CouplingState, CouplingWork
 from suture_gym.sim.coupling.params import TINY_LENGTH
 
 
@@ -227,14 +227,14 @@ def tip_events(model, state, work, tissue, tissue_q, tip) -> None:
         # the tip is through: the entry is where the strand crosses the surface (the puncture recorded the
         # tip's closest point from just outside)
         state.path_entered[open_k] = True
-        tri, bary = tip_crossing(model, state, tissue_q, work.strand_q)
+        tri, bary = tip_crossing(model, state, work, tissue_q)
         state.path_entry_tri[open_k] = tri
         state.path_entry_bary[open_k] = bary
         slot = state.path_first[open_k]
         state.pathnode_tet[slot], state.pathnode_bary[slot] = surface_point_tet(model, tissue, tri, bary)
         return
     if state.path_entered[open_k] and tip_sdist > 0.0:
-        tri, bary = tip_crossing(model, state, tissue_q, work.strand_q)
+        tri, bary = tip_crossing(model, state, work, tissue_q)
         if tri < 0:  # the needle's front left the tissue without crossing its surface: the bite is lost
             release_path(state, open_k)
             return
@@ -267,19 +267,21 @@ def tip_events(model, state, work, tissue, tissue_q, tip) -> None:
     if not forward:
         return
     points = p_last + np.arange(1, count + 1)[:, None] / count * step
-    tets, barys = locate_points(points, model.tet_bvh, tissue_q, tolerance=1e-6)
+    tets, barys = locate_points(points, work.tet_bvh, tissue_q, tolerance=1e-6)
     append_path_nodes(state, model, tets, barys)
 
 
 def tip_crossing(
-    model: CouplingModel, state: CouplingState, tissue_q: np.ndarray, strand_q: np.ndarray
+    model: CouplingModel, state: CouplingState, work: CouplingWork, tissue_q: np.ndarray
 ) -> tuple[int, np.ndarray]:
-    """(triangle, barycentrics) where the strand nearest the tip crosses the surface, searched over the first
-    four strand segments, then over the whole needle; the tip's closest surface point when none crosses
-    (triangle -1 when the tip is beyond the broad phase)."""
+    """(triangle, barycentrics) where the strand at detection (``work.strand_q`` (M, 3) m) nearest the tip
+    crosses the surface (``work.surface``, refitted to ``tissue_q`` (N, 3) m), searched over the first four
+    strand segments, then over the whole needle; the tip's closest surface point when none crosses (triangle
+    -1 when the tip is beyond the broad phase)."""
     nn = model.needle_node_count
+    strand_q = work.strand_q
     for k in (min(4, strand_q.shape[0] - 1), nn - 1):
-        hits = segment_crossings(strand_q[:k], strand_q[1 : k + 1], model.surface, tissue_q)
+        hits = segment_crossings(strand_q[:k], strand_q[1 : k + 1], work.surface, tissue_q)
         if hits.crossing_tri.size:
             return int(hits.crossing_tri[0]), hits.crossing_bary[0].copy()
     return int(state.strand_tri[0]), state.strand_bary[0].copy()
