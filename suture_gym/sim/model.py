@@ -22,7 +22,7 @@ from suture_gym.sim.coloring import color_constraints
 from suture_gym.sim.coupling import CouplingModel, CouplingState, CouplingWork
 from suture_gym.sim.mesh import TetMesh, lumped_masses, rest_shape, surface_triangles
 from suture_gym.sim.needle import NeedleModel, NeedleState
-from suture_gym.sim.rod import RodModel, RodState, RodWork
+from suture_gym.sim.rod import RodModel, RodState, RodWork, StaticObstacles
 
 
 @dataclass(frozen=True)
@@ -374,6 +374,8 @@ class Model:
         coupling: the :class:`~suture_gym.sim.coupling.CouplingModel` of needle + suture with the tissue, or
             None (needs tissue and needle, built for exactly this needle and suture).
         gravity: ``(3,) float64`` gravitational acceleration, m/s^2 (read-only).
+        obstacles: :class:`~suture_gym.sim.rod.StaticObstacles` (planes, spheres) the suture cannot enter, with
+            Coulomb friction, or None; needs a suture.
     """
 
     tissue: TissueModel | None = None
@@ -381,6 +383,7 @@ class Model:
     suture: RodModel | None = None
     coupling: CouplingModel | None = None
     gravity: np.ndarray = field(default_factory=lambda: np.array([0.0, 0.0, -9.81]))
+    obstacles: StaticObstacles | None = None
 
     def __post_init__(self) -> None:
         for name, kind in (
@@ -388,6 +391,7 @@ class Model:
             ("needle", NeedleModel),
             ("suture", RodModel),
             ("coupling", CouplingModel),
+            ("obstacles", StaticObstacles),
         ):
             value = getattr(self, name)
             if value is not None and not isinstance(value, kind):
@@ -401,6 +405,8 @@ class Model:
                     f"Model.coupling was built for a strand of {self.coupling.strand_node_count} nodes, but needle "
                     f"and suture make {expected}"
                 )
+        if self.obstacles is not None and self.suture is None:
+            raise ValueError("Model.obstacles act on the suture: they need Model.suture")
         gravity = np.array(self.gravity, dtype=np.float64, copy=True)
         if gravity.shape != (3,) or not np.all(np.isfinite(gravity)):
             raise ValueError(f"Model.gravity must be three finite components in m/s^2, got {self.gravity!r}")
@@ -418,12 +424,15 @@ class Work:
         model: the :class:`Model` the buffers were sized for (compared by identity).
         rod_work: :class:`~suture_gym.sim.rod.RodWork` of the suture, or None.
         coupling_work: :class:`~suture_gym.sim.coupling.CouplingWork` (rows, refitted BVHs), or None.
+        rod_solves: direct solves of the suture in the last substep's last sweep (iterations whose residual
+            was above the solver's ``rod_tolerance``), a convergence reading.
     """
 
     def __init__(self, model: Model):
         self.model = model
         self.rod_work = None if model.suture is None else RodWork(model.suture)
         self.coupling_work = None if model.coupling is None else CouplingWork(model.coupling)
+        self.rod_solves = 0
 
 
 @dataclass
@@ -516,9 +525,12 @@ class Control:
     Attributes:
         needle_wrench: ``(6,) float64`` force (N, world frame) then torque (N m, world frame) applied to the
             needle holder's grip point.
+        suture_force: ``(S, 3) float64`` external force on each suture node, N (world frame), or None for none;
+            its row count must match the model's suture.
     """
 
     needle_wrench: np.ndarray = field(default_factory=lambda: np.zeros(6))
+    suture_force: np.ndarray | None = None
 
     def __post_init__(self) -> None:
         wrench = np.array(self.needle_wrench, dtype=np.float64, copy=True)
@@ -527,3 +539,8 @@ class Control:
         if not np.all(np.isfinite(wrench)):
             raise ValueError(f"Control.needle_wrench must be finite, got {wrench.tolist()}")
         self.needle_wrench = wrench
+        if self.suture_force is not None:
+            force = np.array(self.suture_force, dtype=np.float64, copy=True)
+            if force.ndim != 2 or force.shape[1] != 3 or not np.all(np.isfinite(force)):
+                raise ValueError(f"Control.suture_force must be a finite (S, 3) array in N, got shape {force.shape}")
+            self.suture_force = force

@@ -49,7 +49,7 @@ import numpy as np
 from numba import njit
 
 from suture_gym.sim.checks import finite_array, is_real, require_non_negative, require_positive
-from suture_gym.sim.needle import NeedleModel, NeedleState, needle_predict, needle_update_velocities
+from suture_gym.sim.needle import NeedleModel, NeedleState
 from suture_gym.sim.quat import (
     quat_from_two_vectors,
     quat_to_matrix,
@@ -1154,13 +1154,6 @@ def friction_kernel(contact_push, friction, dt, node_vel):
             node_vel[i] -= vt * (limit / speed)
 
 
-@njit(cache=True)
-def rod_velocity_kernel(node_pos, node_pos_prev, dt, node_vel):
-    """``v = (x - x_prev) / dt`` for all nodes; writes ``node_vel`` (N, 3) m/s."""
-    for i in range(node_pos.shape[0]):
-        node_vel[i] = (node_pos[i] - node_pos_prev[i]) / dt
-
-
 # ---------------------------------------------------------------------------------------------------------
 # Phase API
 # ---------------------------------------------------------------------------------------------------------
@@ -1190,33 +1183,12 @@ def rod_detect_contacts(model: RodModel, state: RodState, work: RodWork, obstacl
     """Collision detection for the thread: closest obstacle gap and normal of each node into
     ``work.contact_gap`` / ``work.contact_normal``, which the direct solve turns into one-sided contact rows.
 
-    Static planes and spheres (e.g. the holder's jaws) are handled here; this is the place where further
-    thread contact candidates (tissue surface, self-collision) would be gathered.
+    Every node's gap is reset (+inf without an obstacle in reach); the solver then lets the tissue contact rows
+    of the coupling overwrite theirs (:func:`~suture_gym.sim.coupling.suture_contact_rows`).
     """
     detect_contacts_kernel(
         state.node_pos, model.node_inv_mass, model.radius, *_obstacle_arrays(obstacles), work.contact_gap,
         work.contact_normal,
-    )  # fmt: skip
-
-
-def _iteration_args(model, state, work, dt, tolerance, needle_model, needle_state) -> tuple:
-    """Arguments of :func:`rod_iteration_kernel` in order."""
-    has_needle = needle_model is not None and needle_state is not None
-    if has_needle:
-        n_pos, n_quat = needle_state.body_pos, needle_state.body_quat
-        n_inv_mass, n_inv_inertia = needle_model.body_inv_mass, needle_model.body_inv_inertia
-        swage = needle_model.swage_pos_body
-    else:
-        n_pos, n_quat = np.zeros(3), np.array([1.0, 0.0, 0.0, 0.0])
-        n_inv_mass, n_inv_inertia, swage = 0.0, np.zeros((3, 3)), np.zeros(3)
-    return (
-        model.node_inv_mass, model.seg_rest_length, model.seg_inv_inertia, model.seg_stretch_compliance,
-        model.bend_compliance, float(dt), float(tolerance), has_needle, n_inv_mass, n_inv_inertia, swage,
-        work.seg_quat_start, work.seg_tension_prev, work.contact_gap, work.contact_normal, work.contact_obstacle_w,
-        work.seg_rot,
-        work.seg_s, work.seg_winv, work.bend_b, work.seg_h, work.att_r, work.att_winv, work.contact_active,
-        work.diag, work.lower, work.rhs, work.dinv, work.y, work.z, work.lam, state.node_pos, state.seg_quat,
-        n_pos, n_quat, work.contact_push,
     )  # fmt: skip
 
 
@@ -1227,163 +1199,41 @@ def rod_solve_iteration(
     dt: float,
     needle_model: NeedleModel | None = None,
     needle_state: NeedleState | None = None,
-    obstacles: StaticObstacles | None = None,
     tolerance: float = 0.0,
+    node_inv_mass: np.ndarray | None = None,
+    contact_w: np.ndarray | None = None,
 ) -> float:
-    """One direct-solver iteration over all rod constraints, obstacle contacts and (if a needle is given) the
-    two-way swage attachment.
+    """One direct-solver iteration (:func:`rod_iteration_kernel`) over all rod constraints, the contact rows in
+    ``work.contact_gap`` / ``work.contact_normal`` and (if a needle is given) the two-way swage attachment.
 
-    Call ``work.begin(state)`` once per substep before the first iteration (:func:`rod_project` does).
-    Returns the largest residual before this iteration's solve (dimensionless, see
-    :func:`assemble_rod_system`); if it is <= ``tolerance`` the solve is skipped and nothing moves except the
-    frame alignment.
+    Call ``work.begin(state)`` once per substep before the first iteration. ``node_inv_mass`` (N,) 1/kg replaces
+    the model's node inverse masses for this iteration (the coupling's embedded masses) and ``contact_w`` (N,)
+    1/kg gives the obstacle's share of each contact row (default ``work.contact_obstacle_w``: static obstacles).
+    Returns the largest residual before this iteration's solve (dimensionless, see :func:`assemble_rod_system`);
+    if it is <= ``tolerance`` the solve is skipped and nothing moves except the frame alignment.
     """
-    rod_detect_contacts(model, state, work, obstacles)
-    return rod_iteration_kernel(*_iteration_args(model, state, work, dt, tolerance, needle_model, needle_state))
+    if needle_model is not None and needle_state is not None:
+        n_args = (True, needle_model.body_inv_mass, needle_model.body_inv_inertia, needle_model.swage_pos_body)
+        n_pos, n_quat = needle_state.body_pos, needle_state.body_quat
+    else:
+        n_args = (False, 0.0, _NO_INERTIA, _NO_VECTOR)
+        n_pos, n_quat = np.zeros(3), np.array([1.0, 0.0, 0.0, 0.0])
+    return rod_iteration_kernel(
+        model.node_inv_mass if node_inv_mass is None else node_inv_mass, model.seg_rest_length,
+        model.seg_inv_inertia, model.seg_stretch_compliance, model.bend_compliance, float(dt), float(tolerance),
+        *n_args, work.seg_quat_start, work.seg_tension_prev, work.contact_gap, work.contact_normal,
+        work.contact_obstacle_w if contact_w is None else contact_w, work.seg_rot, work.seg_s, work.seg_winv,
+        work.bend_b, work.seg_h, work.att_r, work.att_winv, work.contact_active, work.diag, work.lower, work.rhs,
+        work.dinv, work.y, work.z, work.lam, state.node_pos, state.seg_quat, n_pos, n_quat, work.contact_push,
+    )  # fmt: skip
 
 
-@njit(cache=True)
-def rod_project_kernel(
-    iterations,
-    radius,
-    plane_point,
-    plane_normal,
-    sphere_center,
-    sphere_radius,
-    node_inv_mass,
-    seg_rest_length,
-    seg_inv_inertia,
-    seg_stretch_compliance,
-    bend_compliance,
-    dt,
-    tolerance,
-    has_needle,
-    needle_inv_mass,
-    needle_inv_inertia_body,
-    swage_body,
-    seg_quat_start,
-    seg_tension_prev,
-    contact_gap,
-    contact_normal,
-    contact_obstacle_w,
-    seg_rot,
-    seg_s,
-    seg_winv,
-    bend_b,
-    seg_h,
-    att_r,
-    att_winv,
-    contact_active,
-    diag,
-    lower,
-    rhs,
-    dinv,
-    y,
-    z,
-    lam,
-    node_pos,
-    seg_quat,
-    needle_pos,
-    needle_quat,
-    contact_push,
-):
-    """Up to ``iterations`` x (contact detection, :func:`rod_iteration_kernel`), stopping at ``tolerance``.
-
-    Returns the number of solves done.
-    """
-    solves = 0
-    for _ in range(iterations):
-        detect_contacts_kernel(
-            node_pos, node_inv_mass, radius, plane_point, plane_normal, sphere_center, sphere_radius, contact_gap,
-            contact_normal,
-        )  # fmt: skip
-        residual = rod_iteration_kernel(
-            node_inv_mass, seg_rest_length, seg_inv_inertia, seg_stretch_compliance, bend_compliance, dt,
-            tolerance, has_needle, needle_inv_mass, needle_inv_inertia_body, swage_body, seg_quat_start,
-            seg_tension_prev, contact_gap, contact_normal, contact_obstacle_w, seg_rot, seg_s, seg_winv, bend_b,
-            seg_h, att_r, att_winv, contact_active, diag, lower, rhs, dinv, y, z, lam, node_pos, seg_quat, needle_pos,
-            needle_quat, contact_push,
-        )  # fmt: skip
-        if residual <= tolerance:
-            break
-        solves += 1
-    return solves
-
-
-def rod_project(
-    model: RodModel,
-    state: RodState,
-    work: RodWork,
-    dt: float,
-    iterations: int = 8,
-    tolerance: float = 1.0e-6,
-    needle_model: NeedleModel | None = None,
-    needle_state: NeedleState | None = None,
-    obstacles: StaticObstacles | None = None,
-) -> int:
-    """Projection phase: reset the multipliers, then up to ``iterations`` direct solves (each after a contact
-    detection), stopping once the residual is <= ``tolerance`` (dimensionless, strain-like). Returns the number
-    of solves done.
-
-    At rest or in smooth motion one or two solves converge; contact changes and sudden large loads (a newton on
-    a free end node of tens of micrograms) need more.
-    """
-    if isinstance(iterations, bool) or not isinstance(iterations, numbers.Integral) or iterations < 1:
-        raise ValueError(f"iterations must be an integer >= 1, got {iterations!r}")
-    require_non_negative("tolerance", tolerance)
-    work.begin(state)
-    return int(
-        rod_project_kernel(
-            int(iterations),
-            model.radius,
-            *_obstacle_arrays(obstacles),
-            *_iteration_args(model, state, work, dt, tolerance, needle_model, needle_state),
-        )
-    )
-
-
-def rod_update_velocities(state: RodState, work: RodWork, dt: float, friction: float = 0.0) -> None:
-    """Velocity phase: ``v = (x - x_prev) / dt``, then Coulomb ``friction`` for nodes that touched obstacles."""
-    rod_velocity_kernel(state.node_pos, state.node_pos_prev, dt, state.node_vel)
-    if friction > 0.0:
-        friction_kernel(work.contact_push, friction, dt, state.node_vel)
+#: Needle arguments of :func:`rod_iteration_kernel` for a rod without a needle (never read).
+_NO_INERTIA = np.zeros((3, 3))
+_NO_VECTOR = np.zeros(3)
 
 
 def segment_strain(model: RodModel, state: RodState) -> np.ndarray:
     """(N-1,) axial strain ``|x_{j+1} - x_j| / l_j - 1`` of every segment (dimensionless)."""
     edges = np.diff(state.node_pos, axis=0)
     return np.linalg.norm(edges, axis=1) / model.seg_rest_length - 1.0
-
-
-def step_strands(
-    rod_model: RodModel,
-    rod_state: RodState,
-    work: RodWork,
-    dt: float,
-    *,
-    gravity=(0.0, 0.0, -9.81),
-    iterations: int = 8,
-    tolerance: float = 1.0e-6,
-    needle_model: NeedleModel | None = None,
-    needle_state: NeedleState | None = None,
-    needle_wrench=None,
-    node_force=None,
-    obstacles: StaticObstacles | None = None,
-) -> int:
-    """One substep of the needle + suture system on their own (no tissue), in the solver's phase order.
-
-    Predict (needle under ``needle_wrench`` (6,) at the grip point, nodes under gravity and ``node_force``),
-    project (direct rod solve with the two-way swage attachment, obstacles), update velocities.
-    Returns the number of direct solves the projection used.
-    """
-    require_positive("dt", dt)
-    g = finite_array("gravity", gravity, (3,))
-    has_needle = needle_model is not None and needle_state is not None
-    if has_needle:
-        needle_predict(needle_model, needle_state, np.zeros(6) if needle_wrench is None else needle_wrench, dt, g)
-    rod_predict(rod_model, rod_state, dt, g, node_force)
-    solves = rod_project(rod_model, rod_state, work, dt, iterations, tolerance, needle_model, needle_state, obstacles)
-    rod_update_velocities(rod_state, work, dt, 0.0 if obstacles is None else obstacles.friction)
-    if has_needle:
-        needle_update_velocities(needle_state, dt)
-    return solves

@@ -6,8 +6,9 @@
    ``v <- v exp(-c dt) + g dt`` (mass-proportional damping ``c`` of their material, then gravity;
    semi-implicit Euler), ``x <- x + v dt``; pinned particles keep ``v = 0``; tet multipliers reset. The needle:
    Newton-Euler under the action wrench ``Control.needle_wrench`` at its grip point and gravity
-   (:func:`~suture_gym.sim.needle.needle_predict`). The suture nodes under gravity
-   (:func:`~suture_gym.sim.rod.rod_predict`). A non-finite prediction flags divergence and ends the substep.
+   (:func:`~suture_gym.sim.needle.needle_predict`). The suture nodes under gravity and
+   ``Control.suture_force`` (:func:`~suture_gym.sim.rod.rod_predict`). A non-finite prediction flags
+   divergence and ends the substep.
 2. **Detect** (:func:`~suture_gym.sim.coupling.coupling_detect`): strand node positions at the start of
    the substep and predicted, broad phase, signed distances, node states, the tip's anchor, puncture, path
    growth, exit, release and the coupling constraint rows with their contact frames (paper section 4), from
@@ -20,10 +21,13 @@
    the needle's node-triangle and node-path rows with axial friction (rigid body, generalised inverse mass),
    the suture's node-path rows and the node-access rows, all two-way with the tissue
    (:mod:`suture_gym.sim.coupling`); last the suture's direct solve (inextensibility, bending, two-way swage
-   attachment, and its node-triangle contacts with the tissue as one-sided rows; up to ``rod_iterations``
-   iterations, see :meth:`Solver._project_suture`), so a substep ends with the thread at its rest length.
+   attachment, its contacts with the static obstacles ``Model.obstacles`` and its node-triangle contacts with
+   the tissue as one-sided rows; up to ``rod_iterations`` iterations, see :meth:`Solver._project_suture`), so a
+   substep ends with the thread at its rest length.
 4. **Velocities** (:meth:`Solver._update_velocities`): ``v = (x - x_prev) / dt`` for tissue particles and
-   suture nodes, the needle's linear and angular velocity from its pose change; a non-finite value or a speed
+   suture nodes (then the obstacles' Coulomb friction on the suture nodes their contacts pushed,
+   :func:`~suture_gym.sim.rod.friction_kernel`), the needle's linear and angular velocity from its pose
+   change; a non-finite value or a speed
    above ``max_speed`` sets ``state.diverged``. Then the readings: the coupling forces (tip force for the
    next puncture test, friction, largest force, damage flag), the suture tensions (the rod's warm start for
    the next substep, kept in the State so that snapshots replay bit for bit) and the constraint wrench on the
@@ -87,7 +91,7 @@ from suture_gym.sim.coupling import (
 from suture_gym.sim.model import Control, Model, State, Work
 from suture_gym.sim.needle import needle_constraint_wrench, needle_predict, needle_update_velocities
 from suture_gym.sim.quat import quat_to_matrix
-from suture_gym.sim.rod import rod_iteration_kernel, rod_predict
+from suture_gym.sim.rod import friction_kernel, rod_detect_contacts, rod_predict, rod_solve_iteration
 from suture_gym.sim.tissue import project_rollers, project_tets, tet_residual
 
 #: Phases timed by :meth:`Solver.step` when given a ``timings`` dict (seconds accumulated per phase).
@@ -295,6 +299,10 @@ class Solver:
                 or state.suture_tension.shape != (s - 1,)
             ):
                 raise ValueError(f"state.suture and state.suture_tension must match the model's {s} suture nodes")
+        if control.suture_force is not None and (
+            model.suture is None or control.suture_force.shape != (model.suture.node_count, 3)
+        ):
+            raise ValueError("control.suture_force must be an (S, 3) array for the model's S suture nodes")
         if model.needle is not None and (state.needle_reaction is None or state.needle_reaction.shape != (6,)):
             raise ValueError("state.needle_reaction must be a (6,) array when the model has a needle")
         if residuals is not None and (residuals.shape != (self.iterations,) or residuals.dtype != np.float64):
@@ -318,7 +326,7 @@ class Solver:
         if model.needle is not None:
             needle_predict(model.needle, state.needle, control.needle_wrench, dt, model.gravity)
         if model.suture is not None:
-            rod_predict(model.suture, state.suture, dt, model.gravity)
+            rod_predict(model.suture, state.suture, dt, model.gravity, control.suture_force)
 
     @staticmethod
     def _finite(state: State) -> bool:
@@ -487,33 +495,31 @@ class Solver:
         )
 
     def _project_suture(self, model: Model, state: State, dt: float) -> None:
-        """The suture's direct solve (:func:`~suture_gym.sim.rod.rod_iteration_kernel`, its contact rows made
-        two-way with the tissue), warm-started from ``state.suture_tension``, up to
-        ``rod_iterations`` iterations until its residual is below ``rod_tolerance``.
+        """The suture's direct solve (:func:`~suture_gym.sim.rod.rod_solve_iteration`, its contact rows made
+        two-way with the tissue), warm-started from ``state.suture_tension``, up to ``rod_iterations``
+        iterations until its residual is below ``rod_tolerance``.
 
-        With coupling, nodes held on a path or passing an access point use their embedded inverse masses
-        (:func:`~suture_gym.sim.coupling.embedded_inv_mass`), and the suture's node-triangle rows enter the solve
-        as one-sided contact rows (:func:`~suture_gym.sim.coupling.suture_contact_rows`); after each iteration
-        the tissue takes their reaction (:func:`~suture_gym.sim.coupling.apply_contact_reaction`). The warm start
-        is loaded as the stretch multipliers that the rod's ``begin`` reads it from.
+        Before each iteration the static obstacles (``model.obstacles``) give every node its contact row
+        (:func:`~suture_gym.sim.rod.rod_detect_contacts`). With coupling, nodes held on a path or passing an
+        access point use their embedded inverse masses (:func:`~suture_gym.sim.coupling.embedded_inv_mass`),
+        and the suture's node-triangle rows enter the solve as one-sided contact rows, in place of an obstacle's
+        (:func:`~suture_gym.sim.coupling.suture_contact_rows`); after each iteration the tissue takes their
+        reaction (:func:`~suture_gym.sim.coupling.apply_contact_reaction`). The warm start is loaded as the
+        stretch multipliers that the rod's ``begin`` reads it from. The number of solves goes to
+        ``state.work.rod_solves``.
         """
         suture, rod_state, work = model.suture, state.suture, state.work.rod_work
-        coupling = model.coupling
-        cwork = state.work.coupling_work
-        inv_mass = suture.node_inv_mass if coupling is None else cwork.suture_inv_mass
-        contact_w = work.contact_obstacle_w if coupling is None else cwork.suture_contact_w
+        coupling, cwork = model.coupling, state.work.coupling_work
+        inv_mass = None if coupling is None else cwork.suture_inv_mass
+        contact_w = None if coupling is None else cwork.suture_contact_w
         work.lam[:] = 0.0
         work.lam[1:, 0] = state.suture_tension
         work.begin(rod_state)
         work.contact_gap[:] = np.inf
-        needle, needle_state = model.needle, state.needle
-        if needle is None:
-            n_args = (False, 0.0, np.zeros((3, 3)), np.zeros(3))
-            n_pos, n_quat = np.zeros(3), np.array([1.0, 0.0, 0.0, 0.0])
-        else:
-            n_args = (True, needle.body_inv_mass, needle.body_inv_inertia, needle.swage_pos_body)
-            n_pos, n_quat = needle_state.body_pos, needle_state.body_quat
+        state.work.rod_solves = 0
         for _ in range(self.rod_iterations):
+            if model.obstacles is not None:
+                rod_detect_contacts(suture, rod_state, work, model.obstacles)
             if coupling is not None:
                 suture_contact_rows(
                     coupling.needle_node_count, coupling.params.resistance_eps, cwork.row_kind, cwork.row_tri,
@@ -521,16 +527,12 @@ class Solver:
                     state.tissue.particle_q, model.tissue.particle_inv_mass, rod_state.node_pos, work.contact_gap,
                     work.contact_normal, cwork.suture_contact_w,
                 )  # fmt: skip
-            residual = rod_iteration_kernel(
-                inv_mass, suture.seg_rest_length, suture.seg_inv_inertia, suture.seg_stretch_compliance,
-                suture.bend_compliance, dt, self.rod_tolerance, *n_args, work.seg_quat_start, work.seg_tension_prev,
-                work.contact_gap, work.contact_normal, contact_w, work.seg_rot, work.seg_s, work.seg_winv,
-                work.bend_b, work.seg_h, work.att_r, work.att_winv, work.contact_active, work.diag, work.lower,
-                work.rhs, work.dinv, work.y, work.z, work.lam, rod_state.node_pos, rod_state.seg_quat, n_pos,
-                n_quat, work.contact_push,
-            )  # fmt: skip
+            residual = rod_solve_iteration(
+                suture, rod_state, work, dt, model.needle, state.needle, self.rod_tolerance, inv_mass, contact_w
+            )
             if residual <= self.rod_tolerance:
                 break
+            state.work.rod_solves += 1
             if coupling is not None:
                 apply_contact_reaction(
                     coupling.needle_node_count, cwork.row_kind, cwork.row_tri, cwork.row_bary,
@@ -549,6 +551,8 @@ class Solver:
         if model.suture is not None:
             rod = state.suture
             diverged |= update_particle_velocities(rod.node_pos, rod.node_pos_prev, dt, self.max_speed, rod.node_vel)
+            if model.obstacles is not None and model.obstacles.friction > 0.0:
+                friction_kernel(state.work.rod_work.contact_push, model.obstacles.friction, dt, rod.node_vel)
         if model.needle is not None:
             needle_update_velocities(state.needle, dt)
             reach = float(np.sqrt((model.needle.node_pos_body**2).sum(axis=1).max()))

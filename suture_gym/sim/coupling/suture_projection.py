@@ -139,11 +139,11 @@ def suture_contact_rows(
     """The suture nodes' contact rows (:func:`node_surface_constraint` in the row's frame) as the rod's
     one-sided contact rows: ``gap = C - floor`` (``row_floor``, :func:`contact_floors`) at the current
     positions, ``normal = n``, and the generalised inverse mass of the surface point ``sum_v b_v^2 w_v`` (1/kg)
-    in ``out_tissue_w``. Nodes without a contact row (and node 0, on the swage) get ``gap = +inf``. Writes
-    ``out_gap`` (Ns,), ``out_normal`` (Ns, 3), ``out_tissue_w`` (Ns,)."""
+    in ``out_tissue_w``. Nodes without a contact row (and node 0, on the swage) keep their ``out_gap`` and
+    ``out_normal`` (+inf, or a static obstacle's, :func:`~suture_gym.sim.rod.rod_detect_contacts`) and get
+    ``out_tissue_w = 0``. Writes ``out_gap`` (Ns,), ``out_normal`` (Ns, 3), ``out_tissue_w`` (Ns,)."""
     nn = needle_node_count
     for j in range(suture_q.shape[0]):
-        out_gap[j] = np.inf
         out_tissue_w[j] = 0.0
         if j == 0:
             continue
