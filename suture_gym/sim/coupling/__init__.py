@@ -99,7 +99,8 @@ from suture_gym.sim.coupling.constraints import (
     xpbd_delta_lambda,
 )
 from suture_gym.sim.coupling.detection import (
-    build_rows,
+    build_access_rows,
+    build_node_rows,
     contact_floors,
     contact_frames,
     coupling_detect,
@@ -158,7 +159,8 @@ __all__ = [
     "access_point",
     "append_path_nodes",
     "apply_contact_reaction",
-    "build_rows",
+    "build_access_rows",
+    "build_node_rows",
     "contact_floors",
     "contact_frames",
     "coupling_detect",

@@ -26,14 +26,13 @@ from suture_gym.sim.coupling.params import (
     TINY_LENGTH,
 )
 from suture_gym.sim.coupling.paths import (
-    access_point,
     path_node_kinematics,
     project_onto_path,
-    release_path,
+    release_finished_paths,
     tip_events,
     update_tip_anchor,
 )
-from suture_gym.sim.coupling.tracking import track_sigma
+from suture_gym.sim.coupling.tracking import track_access_points
 from suture_gym.sim.quat import quat_to_matrix
 
 
@@ -53,58 +52,29 @@ def _segment_of(sigma, s):
 
 
 @njit(cache=True)
-def build_rows(
-    sigma,
-    strand_q,
-    sdist,
-    strand_tri,
-    row_band,
-    path_count,
-    path_first,
-    path_len,
-    path_open,
-    path_sigma_entry,
-    path_sigma_exit,
-    path_entry_tri,
-    path_entry_bary,
-    path_exit_tri,
-    path_exit_bary,
-    pathnode_tet,
-    pathnode_bary,
-    pathnode_q,
-    pathnode_tangent,
-    tet_indices,
-    out_status,
-    out_path,
-    row_kind,
-    row_tri,
-    row_tissue,
-    row_weight,
-    row_tangent,
-    access_node,
-    access_weight,
-    access_rest,
-    access_tri,
-    access_bary,
-):
-    """Node states and constraint rows of every strand node, and the node-access rows (module docstring,
-    detection step 7); nodes not on a path get a node-triangle row when their signed distance is below
-    ``row_band`` (m). Returns the number of access rows written.
+def build_access_rows(sigma, paths, access):
+    """The node-access rows of every path's entry and exit with the strand through them (module docstring,
+    detection step 8); returns how many were written.
 
-    A node-access row acts on the strand piece of rest length ``2 h`` centred on the strand coordinate at
-    the access point, with ``h`` half the rest length of the segment holding it; its ends are interpolated
-    between strand nodes (clamped to the strand's ends)."""
+    A node-access row acts on the strand piece of rest length ``2 h`` centred on the strand coordinate at the
+    access point, with ``h`` half the rest length of the segment holding it; its ends are interpolated between
+    strand nodes (clamped to the strand's ends).
+
+    Args:
+        sigma: ``(M,)`` strand node coordinates, m.
+        paths: :func:`path_arrays` of the coupling state.
+        access: ``CouplingWork.access_rows``, written: ``(access_node (2K, 4), access_weight (2K, 4),
+            access_rest (2K,) m, access_tri (2K,), access_bary (2K, 3))``.
+    """
+    path_count, _, _, _, sigma_entry, sigma_exit, entry_tri, entry_bary, exit_tri, exit_bary = paths
+    access_node, access_weight, access_rest, access_tri, access_bary = access
     m = sigma.shape[0]
     total = sigma[m - 1]
     n_access = 0
     for k in range(path_count):
         for end in range(2):
-            if end == 0:
-                s = path_sigma_entry[k]
-                tri = path_entry_tri[k]
-            else:
-                s = path_sigma_exit[k]
-                tri = path_exit_tri[k]
+            s = sigma_entry[k] if end == 0 else sigma_exit[k]
+            tri = entry_tri[k] if end == 0 else exit_tri[k]
             if tri < 0 or not (0.0 < s < total):
                 continue
             j = _segment_of(sigma, s)
@@ -122,11 +92,64 @@ def build_rows(
             access_rest[n_access] = hi - lo
             access_tri[n_access] = tri
             if end == 0:
-                access_bary[n_access] = path_entry_bary[k]
+                access_bary[n_access] = entry_bary[k]
             else:
-                access_bary[n_access] = path_exit_bary[k]
+                access_bary[n_access] = exit_bary[k]
             n_access += 1
-    for i in range(m):
+    return n_access
+
+
+@njit(cache=True)
+def _path_row(i, q, first, count, is_open, pathnodes, tet_indices, rows):
+    """Node-path row (eq. 1) of strand node ``i`` at ``q`` (3,) m on the path with path-node slots
+    ``first .. first + count - 1``: the tangent and the eight tissue vertices and weights of the projection
+    point (:func:`project_onto_path`), or no row where the projection is undefined."""
+    pathnode_tet, pathnode_bary, pathnode_q, pathnode_tangent = pathnodes
+    row_kind, _, row_tissue, row_weight, row_tangent = rows
+    ok, slot, u = project_onto_path(q, first, count, pathnode_q, pathnode_tangent, is_open)
+    if not ok:
+        return
+    tan = (1.0 - u) * pathnode_tangent[slot] + u * pathnode_tangent[slot + 1]
+    nt = math.sqrt(tan @ tan)
+    if nt <= TINY_LENGTH:
+        return
+    row_kind[i] = ROW_PATH
+    row_tangent[i] = tan / nt
+    for a in range(4):
+        row_tissue[i, a] = tet_indices[pathnode_tet[slot], a]
+        row_weight[i, a] = (1.0 - u) * pathnode_bary[slot, a]
+        row_tissue[i, 4 + a] = tet_indices[pathnode_tet[slot + 1], a]
+        row_weight[i, 4 + a] = u * pathnode_bary[slot + 1, a]
+
+
+@njit(cache=True)
+def _in_access_piece(i, n_access, access_node, access_weight):
+    """Strand node ``i`` carries weight in one of the first ``n_access`` node-access rows."""
+    for a in range(n_access):
+        for e in range(4):
+            if access_node[a, e] == i and access_weight[a, e] > 0.0:
+                return True
+    return False
+
+
+@njit(cache=True)
+def build_node_rows(sigma, strand_q, sdist, strand_tri, row_band, paths, pathnodes, tet_indices, access, n_access,
+                    out_status, out_path, rows):  # fmt: skip
+    """Node states and constraint rows of every strand node (module docstring, detection step 8): the HEAD of
+    an open path none; nodes matched to a path (``sigma_exit <= sigma < sigma_entry``) a node-path row
+    (:func:`_path_row`); others a node-triangle row with their closest triangle when their signed distance
+    is below ``row_band`` (m), unless they carry one of the ``n_access`` node-access rows.
+
+    Args:
+        sigma: ``(M,)`` m. strand_q: ``(M, 3)`` m. sdist: ``(M,)`` m. strand_tri: ``(M,)`` closest triangles.
+        paths: :func:`path_arrays`. pathnodes: ``(pathnode_tet (P,), pathnode_bary (P, 4), pathnode_q (P, 3) m,
+            pathnode_tangent (P, 3))``. tet_indices: ``(T, 4)``. access: ``CouplingWork.access_rows``.
+        out_status: ``(M,) int8`` written. out_path: ``(M,) int32`` written.
+        rows: ``CouplingWork.node_rows`` ``(row_kind, row_tri, row_tissue, row_weight, row_tangent)``, written.
+    """
+    path_count, path_first, path_len, path_open, sigma_entry, sigma_exit = paths[:6]
+    row_kind, row_tri = rows[0], rows[1]
+    for i in range(sigma.shape[0]):
         out_status[i] = NODE_HEAD if i == 0 else NODE_OUT
         out_path[i] = -1
         row_kind[i] = ROW_NONE
@@ -134,46 +157,33 @@ def build_rows(
         if i == 0 and path_count > 0 and path_open[path_count - 1]:
             out_path[0] = path_count - 1  # the HEAD cuts its way: no row
             continue
-        s = sigma[i]
         matched = -1
         for k in range(path_count):
-            lo = -np.inf if path_open[k] else path_sigma_exit[k]
-            if lo <= s < path_sigma_entry[k]:
+            lo = -np.inf if path_open[k] else sigma_exit[k]
+            if lo <= sigma[i] < sigma_entry[k]:
                 matched = k
                 break
         if matched >= 0:
             out_path[i] = matched
             if i > 0:
                 out_status[i] = NODE_IN
-            ok, slot, u = project_onto_path(
-                strand_q[i], path_first[matched], path_len[matched], pathnode_q, pathnode_tangent, path_open[matched]
-            )
-            if not ok:
-                continue
-            tan = (1.0 - u) * pathnode_tangent[slot] + u * pathnode_tangent[slot + 1]
-            nt = math.sqrt(tan @ tan)
-            if nt <= TINY_LENGTH:
-                continue
-            row_kind[i] = ROW_PATH
-            row_tangent[i] = tan / nt
-            for a in range(4):
-                row_tissue[i, a] = tet_indices[pathnode_tet[slot], a]
-                row_weight[i, a] = (1.0 - u) * pathnode_bary[slot, a]
-                row_tissue[i, 4 + a] = tet_indices[pathnode_tet[slot + 1], a]
-                row_weight[i, 4 + a] = u * pathnode_bary[slot + 1, a]
+            _path_row(i, strand_q[i], path_first[matched], path_len[matched], path_open[matched], pathnodes,
+                      tet_indices, rows)  # fmt: skip
             continue
-        if strand_tri[i] < 0 or not (sdist[i] < row_band):
-            continue
-        near_access = False
-        for a in range(n_access):
-            for e in range(4):
-                if access_node[a, e] == i and access_weight[a, e] > 0.0:
-                    near_access = True
-        if near_access:
+        if strand_tri[i] < 0 or not (sdist[i] < row_band) or _in_access_piece(i, n_access, access[0], access[1]):
             continue
         row_kind[i] = ROW_TRIANGLE
         row_tri[i] = strand_tri[i]
-    return n_access
+
+
+def path_arrays(state: CouplingState) -> tuple:
+    """The path vector of ``state`` as the kernels take it: ``(path_count, path_first, path_len, path_open,
+    path_sigma_entry, path_sigma_exit, path_entry_tri, path_entry_bary, path_exit_tri, path_exit_bary)``
+    (shapes and units as in :class:`CouplingState`)."""
+    return (
+        state.path_count, state.path_first, state.path_len, state.path_open, state.path_sigma_entry,
+        state.path_sigma_exit, state.path_entry_tri, state.path_entry_bary, state.path_exit_tri, state.path_exit_bary,
+    )  # fmt: skip
 
 
 @njit(cache=True)
@@ -282,7 +292,7 @@ def coupling_detect(
     strand_q: np.ndarray,
     strand_q_start: np.ndarray | None = None,
 ) -> None:
-    """Detection phase (module docstring, steps 1-7) for strand positions ``strand_q`` (M, 3) m against the
+    """Detection phase (module docstring, steps 1-9) for strand positions ``strand_q`` (M, 3) m against the
     tissue (:class:`~suture_gym.sim.model.TissueModel` ``tissue``, positions ``tissue_q`` (N, 3) m).
     ``strand_q_start`` (M, 3) m, the positions at the start of the substep, enables the rigid-support rows
     (:func:`rigid_crossings`).
@@ -290,16 +300,52 @@ def coupling_detect(
     Updates ``state`` (distances, node states, paths, access points, puncture) and fills ``work``'s rows with
     zeroed multipliers. Uses ``state.tip_force`` from the previous substep for the puncture test.
     """
-    params = model.params
     m = model.strand_node_count
     if strand_q.shape != (m, 3):
         raise ValueError(f"strand_q must have shape ({m}, 3), got {strand_q.shape}")
     work.strand_q[:] = strand_q
+    strand_distances(model, state, work, tissue_q, strand_q)
+    track_access_points(model, state, tissue_q, strand_q)
+    release_finished_paths(model, state, tissue_q, strand_q[0])
+    tip_events(model, state, work, tissue, tissue_q, strand_q[0])
+    update_tip_anchor(model, state, tissue_q, strand_q[0])
+    path_node_kinematics(
+        state.pathnode_tet, state.pathnode_bary, tissue.tet_indices, tissue_q, state.path_first, state.path_len,
+        state.path_count, work.pathnode_q, work.pathnode_tangent,
+    )  # fmt: skip
+    paths = path_arrays(state)
+    band = model.params.resistance_eps + model.params.contact_margin
+    work.access_count = build_access_rows(model.strand_sigma, paths, work.access_rows)
+    pathnodes = (state.pathnode_tet, state.pathnode_bary, work.pathnode_q, work.pathnode_tangent)
+    build_node_rows(
+        model.strand_sigma, strand_q, state.strand_sdist, state.strand_tri, band, paths, pathnodes,
+        tissue.tet_indices, work.access_rows, work.access_count, state.strand_status, state.strand_path,
+        work.node_rows,
+    )  # fmt: skip
+    _wall_and_anchor_rows(model, state, work)
+    if strand_q_start is not None and model.tri_rigid.any():
+        rigid_crossings(model, work, tissue_q, strand_q_start, strand_q)
+    contact_frames(
+        work.row_kind, work.row_tri, work.row_bary, model.tri_rigid, model.surface.tri_vertices,
+        model.surface.vertex_tri_start, model.surface.vertex_tri_index, tissue_q, work.row_contact_normal,
+    )  # fmt: skip
+    work.row_lambda[:] = 0.0
+    work.row_friction_lambda[:] = 0.0
+    work.access_lambda[:] = 0.0
+    work.tip_friction[:] = 0.0
+
+
+def strand_distances(
+    model: CouplingModel, state: CouplingState, work: CouplingWork, tissue_q: np.ndarray, strand_q: np.ndarray
+) -> None:
+    """Broad phase and signed distances (module docstring, detection step 1): refit ``work``'s BVHs to
+    ``tissue_q`` (N, 3) m; strand nodes (``strand_q`` (M, 3) m) within ``broad_phase_margin`` of the tissue's
+    box get their signed distance, closest triangle and barycentrics in ``state``, the others ``+inf``, -1, 0."""
     refit_bvh(work.surface.bvh, tissue_q)
     refit_bvh(work.tet_bvh, tissue_q)
-
-    lo = work.surface.bvh.node_lo[0] - params.broad_phase_margin
-    hi = work.surface.bvh.node_hi[0] + params.broad_phase_margin
+    margin = model.params.broad_phase_margin
+    lo = work.surface.bvh.node_lo[0] - margin
+    hi = work.surface.bvh.node_hi[0] + margin
     near = np.flatnonzero(np.all((strand_q >= lo) & (strand_q <= hi), axis=1))
     state.strand_sdist[:] = np.inf
     state.strand_tri[:] = -1
@@ -310,95 +356,14 @@ def coupling_detect(
         state.strand_tri[near] = tri
         state.strand_bary[near] = bary
 
-    sigma = model.strand_sigma
-    window = params.track_window
-    total = model.strand_length
-    for k in range(state.path_count - 1, -1, -1):  # newest (front of the strand) first
-        upper = state.path_sigma_exit[k - 1] if k > 0 else min(total, model.knot_sigma)
-        newer_entry = state.path_sigma_entry[k + 1] if k + 1 < state.path_count else 0.0
-        if not state.path_open[k]:
-            b = access_point(model, tissue_q, state.path_exit_tri[k], state.path_exit_bary[k])
-            state.path_sigma_exit[k] = track_sigma(
-                strand_q, sigma, b, state.path_sigma_exit[k], window, newer_entry, state.path_sigma_entry[k]
-            )[0]
-            lower = state.path_sigma_exit[k]
-        else:
-            lower = 0.0
-        b = access_point(model, tissue_q, state.path_entry_tri[k], state.path_entry_bary[k])
-        state.path_sigma_entry[k] = track_sigma(strand_q, sigma, b, state.path_sigma_entry[k], window, lower, upper)[0]
 
-    tip = strand_q[0]
-    for k in range(state.path_count - 1, -1, -1):
-        if state.path_open[k]:
-            b = access_point(model, tissue_q, state.path_entry_tri[k], state.path_entry_bary[k])
-            release = state.path_sigma_entry[k] <= 0.0 and np.linalg.norm(tip - b) > params.path_spacing_min
-        else:
-            release = state.path_sigma_exit[k] >= state.path_sigma_entry[k]
-        if release:
-            release_path(state, k)
-
-    path_node_kinematics(
-        state.pathnode_tet,
-        state.pathnode_bary,
-        tissue.tet_indices,
-        tissue_q,
-        state.path_first,
-        state.path_len,
-        state.path_count,
-        work.pathnode_q,
-        work.pathnode_tangent,
-    )
-    tip_events(model, state, work, tissue, tissue_q, tip)
-    update_tip_anchor(model, state, tissue_q, tip)
-    path_node_kinematics(
-        state.pathnode_tet,
-        state.pathnode_bary,
-        tissue.tet_indices,
-        tissue_q,
-        state.path_first,
-        state.path_len,
-        state.path_count,
-        work.pathnode_q,
-        work.pathnode_tangent,
-    )
-
-    work.access_count = build_rows(
-        sigma,
-        strand_q,
-        state.strand_sdist,
-        state.strand_tri,
-        params.resistance_eps + params.contact_margin,
-        state.path_count,
-        state.path_first,
-        state.path_len,
-        state.path_open,
-        state.path_sigma_entry,
-        state.path_sigma_exit,
-        state.path_entry_tri,
-        state.path_entry_bary,
-        state.path_exit_tri,
-        state.path_exit_bary,
-        state.pathnode_tet,
-        state.pathnode_bary,
-        work.pathnode_q,
-        work.pathnode_tangent,
-        tissue.tet_indices,
-        state.strand_status,
-        state.strand_path,
-        work.row_kind,
-        work.row_tri,
-        work.row_tissue,
-        work.row_weight,
-        work.row_tangent,
-        work.access_node,
-        work.access_weight,
-        work.access_rest,
-        work.access_tri,
-        work.access_bary,
-    )
+def _wall_and_anchor_rows(model: CouplingModel, state: CouplingState, work: CouplingWork) -> None:
+    """Wall rows for needle nodes inside a path with no row within the band of a rigid face, the tip's anchor
+    row (unless it carries a node-access row or a path row), and every row's surface point (the closest point,
+    or the anchor)."""
     nn = model.needle_node_count
     tri = state.strand_tri[:nn]
-    band = params.resistance_eps + params.contact_margin
+    band = model.params.resistance_eps + model.params.contact_margin
     wall = (
         (work.row_kind[:nn] == ROW_NONE)
         & (state.strand_path[:nn] >= 0)
@@ -416,13 +381,3 @@ def coupling_detect(
     work.row_bary[:] = state.strand_bary
     if work.row_kind[0] == ROW_ANCHOR:
         work.row_bary[0] = state.tip_anchor_bary
-    if strand_q_start is not None and model.tri_rigid.any():
-        rigid_crossings(model, work, tissue_q, strand_q_start, strand_q)
-    contact_frames(
-        work.row_kind, work.row_tri, work.row_bary, model.tri_rigid, model.surface.tri_vertices,
-        model.surface.vertex_tri_start, model.surface.vertex_tri_index, tissue_q, work.row_contact_normal,
-    )  # fmt: skip
-    work.row_lambda[:] = 0.0
-    work.row_friction_lambda[:] = 0.0
-    work.access_lambda[:] = 0.0
-    work.tip_friction[:] = 0.0

@@ -284,6 +284,9 @@ class CouplingWork:
             1/kg (:func:`embedded_inv_mass`).
         suture_contact_w: ``(Ns,)`` generalised inverse mass (1/kg) of the tissue point of each suture node's
             contact row in the rod's solve.
+        node_rows: the tuple ``(row_kind, row_tri, row_tissue, row_weight, row_tangent)`` and access_rows:
+            ``(access_node, access_weight, access_rest, access_tri, access_bary)``, built once: the kernels take
+            these groups as one argument each (same arrays, not copies).
     """
 
     def __init__(self, model: CouplingModel):
@@ -315,6 +318,8 @@ class CouplingWork:
         self.access_bary = np.zeros((2 * k, 3))
         self.access_lambda = np.zeros(2 * k)
         self.suture_inv_mass = np.zeros(model.suture_node_count)
+        self.node_rows = (self.row_kind, self.row_tri, self.row_tissue, self.row_weight, self.row_tangent)
+        self.access_rows = (self.access_node, self.access_weight, self.access_rest, self.access_tri, self.access_bary)
         self.suture_contact_w = np.zeros(model.suture_node_count)
 
 

@@ -29,6 +29,17 @@ def path_spacing_count(d, spacing_min, spacing_max):
 
 
 @njit(cache=True)
+def pathnode_point(pathnode_tet, pathnode_bary, tet_indices, tissue_q, s, out):
+    """Position (m) of path node ``s`` in the deformed mesh, ``sum_a b_a x_a`` over its tet; writes ``out`` (3,)."""
+    t = pathnode_tet[s]
+    for i in range(3):
+        acc = 0.0
+        for a in range(4):
+            acc += pathnode_bary[s, a] * tissue_q[tet_indices[t, a], i]
+        out[i] = acc
+
+
+@njit(cache=True)
 def path_node_kinematics(
     pathnode_tet, pathnode_bary, tet_indices, tissue_q, path_first, path_len, path_count, out_q, out_tangent
 ):
@@ -42,12 +53,7 @@ def path_node_kinematics(
         first = path_first[k]
         count = path_len[k]
         for s in range(first, first + count):
-            t = pathnode_tet[s]
-            for i in range(3):
-                acc = 0.0
-                for a in range(4):
-                    acc += pathnode_bary[s, a] * tissue_q[tet_indices[t, a], i]
-                out_q[s, i] = acc
+            pathnode_point(pathnode_tet, pathnode_bary, tet_indices, tissue_q, s, out_q[s])
         for s in range(first, first + count):
             tan = np.zeros(3)
             if s > first:
@@ -192,8 +198,11 @@ def update_tip_anchor(model: CouplingModel, state: CouplingState, tissue_q, tip)
         state.tip_anchor_bary[:] = state.strand_bary[0]
 
 
-def tip_events(model, state, work, tissue, tissue_q, tip) -> None:
-    """Puncture, path growth and exit of the tip (module docstring, steps 3-5)."""
+def tip_events(
+    model: CouplingModel, state: CouplingState, work: CouplingWork, tissue, tissue_q: np.ndarray, tip: np.ndarray
+) -> None:
+    """Puncture, path growth and exit of the tip at ``tip`` (3,) m (module docstring, steps 3-5), for the tissue
+    (:class:`~suture_gym.sim.model.TissueModel` ``tissue``) at ``tissue_q`` (N, 3) m; updates ``state``'s paths."""
     params = model.params
     n = state.path_count
     open_k = n - 1 if n > 0 and state.path_open[n - 1] else -1
@@ -248,7 +257,8 @@ def tip_events(model, state, work, tissue, tissue_q, tip) -> None:
         append_path_nodes(state, model, np.array([tet]), tet_bary[None, :])
         return
     last = state.path_first[open_k] + state.path_len[open_k] - 1
-    p_last = work.pathnode_q[last]
+    p_last = np.empty(3)
+    pathnode_point(state.pathnode_tet, state.pathnode_bary, tissue.tet_indices, tissue_q, last, p_last)
     step = tip - p_last
     d = float(np.linalg.norm(step))
     count = path_spacing_count(d, params.path_spacing_min, params.path_spacing_max)
@@ -261,7 +271,9 @@ def tip_events(model, state, work, tissue, tissue_q, tip) -> None:
         if count == 0:
             return
     if state.path_len[open_k] >= 2:
-        forward = float(step @ (p_last - work.pathnode_q[last - 1])) > 0.0
+        p_before = np.empty(3)
+        pathnode_point(state.pathnode_tet, state.pathnode_bary, tissue.tet_indices, tissue_q, last - 1, p_before)
+        forward = float(step @ (p_last - p_before)) > 0.0
     else:
         forward = tip_sdist < 0.0
     if not forward:
@@ -285,3 +297,17 @@ def tip_crossing(
         if hits.crossing_tri.size:
             return int(hits.crossing_tri[0]), hits.crossing_bary[0].copy()
     return int(state.strand_tri[0]), state.strand_bary[0].copy()
+
+
+def release_finished_paths(model: CouplingModel, state: CouplingState, tissue_q: np.ndarray, tip: np.ndarray) -> None:
+    """Release (module docstring, detection step 7): remove an open path whose tip, at ``tip`` (3,) m, backed out
+    (``sigma_entry <= 0`` and more than ``path_spacing_min`` from the entry) and a closed path with no strand
+    left inside (``sigma_exit >= sigma_entry``); ``tissue_q`` (N, 3) m."""
+    for k in range(state.path_count - 1, -1, -1):
+        if state.path_open[k]:
+            b = access_point(model, tissue_q, state.path_entry_tri[k], state.path_entry_bary[k])
+            release = state.path_sigma_entry[k] <= 0.0 and np.linalg.norm(tip - b) > model.params.path_spacing_min
+        else:
+            release = state.path_sigma_exit[k] >= state.path_sigma_entry[k]
+        if release:
+            release_path(state, k)

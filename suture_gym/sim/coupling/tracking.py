@@ -8,6 +8,8 @@ import math
 import numpy as np
 from numba import njit
 
+from suture_gym.sim.coupling.model import CouplingModel, CouplingState
+from suture_gym.sim.coupling.paths import access_point
 from suture_gym.sim.rigid import (
     body_points_world,
 )
@@ -69,3 +71,25 @@ def track_sigma(strand_q, sigma, target, sigma_prev, window, lower, upper):
     if best_d2 == np.inf:
         return best_s, np.inf
     return best_s, math.sqrt(best_d2)
+
+
+def track_access_points(model: CouplingModel, state: CouplingState, tissue_q: np.ndarray, strand_q: np.ndarray) -> None:
+    """Matching (module docstring, detection step 2): re-find the strand coordinates of every path's access
+    points on the strand at ``strand_q`` (M, 3) m (:func:`track_sigma`), newest path first, each bounded by its
+    neighbours' (and the oldest entry by the stopper knot); ``tissue_q`` (N, 3) m. Updates ``state``."""
+    sigma = model.strand_sigma
+    window = model.params.track_window
+    total = model.strand_length
+    for k in range(state.path_count - 1, -1, -1):  # newest (front of the strand) first
+        upper = state.path_sigma_exit[k - 1] if k > 0 else min(total, model.knot_sigma)
+        newer_entry = state.path_sigma_entry[k + 1] if k + 1 < state.path_count else 0.0
+        if not state.path_open[k]:
+            b = access_point(model, tissue_q, state.path_exit_tri[k], state.path_exit_bary[k])
+            state.path_sigma_exit[k] = track_sigma(
+                strand_q, sigma, b, state.path_sigma_exit[k], window, newer_entry, state.path_sigma_entry[k]
+            )[0]
+            lower = state.path_sigma_exit[k]
+        else:
+            lower = 0.0
+        b = access_point(model, tissue_q, state.path_entry_tri[k], state.path_entry_bary[k])
+        state.path_sigma_entry[k] = track_sigma(strand_q, sigma, b, state.path_sigma_entry[k], window, lower, upper)[0]
