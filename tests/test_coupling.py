@@ -637,10 +637,12 @@ def _anchor_projection(friction, offset, penetration=1e-4, eps=3e-4):
     normals = np.tile(normal, (nn, 1))
     lam, lam_t, slip = np.zeros(nn), np.zeros(nn), np.zeros(4)
     project_needle_rows(
-        nn, needle.body_inv_mass, needle.body_inv_inertia, needle.node_pos_body, pos.copy(), quat.copy(),
-        np.zeros(3), tissue_q.copy(), np.array([[0, 1, 2]], np.int32), np.zeros(nn), eps, 1e-3, friction, 4.0,
-        kind, np.zeros(nn, np.int32), bary, normals, np.zeros(nn), np.zeros((nn, 8), np.int32), np.zeros((nn, 8)),
-        np.zeros((nn, 3)), lam, lam_t, slip, pos, quat, tissue_q,
+        (nn, needle.body_inv_mass, needle.body_inv_inertia, needle.node_pos_body, pos.copy(), quat.copy()),
+        (np.zeros(3), tissue_q.copy(), np.array([[0, 1, 2]], np.int32)),
+        (np.zeros(nn), eps, 1e-3, friction, 4.0),
+        (kind, np.zeros(nn, np.int32), bary, normals, np.zeros(nn), np.zeros((nn, 8), np.int32), np.zeros((nn, 8)),
+         np.zeros((nn, 3)), lam, lam_t),
+        slip, pos, quat, tissue_q,
     )  # fmt: skip
     new_tip = pos + quat_to_matrix(quat) @ needle.node_pos_body[0]
     return new_tip - anchor, lam[0], slip
@@ -677,13 +679,13 @@ def test_a_path_row_transmits_at_most_the_tear_force():
     tangent = np.tile([0.0, 0.0, 1.0], (nn, 1))
     dt, tear = 1e-3, 0.5
     lam = np.zeros(nn)
-    args = (
-        nn, needle.body_inv_mass, needle.body_inv_inertia, needle.node_pos_body, pos.copy(), quat.copy(),
-        np.zeros(4), tissue_q.copy(), np.zeros((1, 3), np.int32), np.zeros(nn), 3e-4, dt, 0.0,
-    )  # fmt: skip
     project_needle_rows(
-        *args, tear, kind, np.zeros(nn, np.int32), np.zeros((nn, 3)), np.zeros((nn, 3)), np.zeros(nn), idx, weight,
-        tangent, lam, np.zeros(nn), np.zeros(4), pos, quat, tissue_q,
+        (nn, needle.body_inv_mass, needle.body_inv_inertia, needle.node_pos_body, pos.copy(), quat.copy()),
+        (np.zeros(4), tissue_q.copy(), np.zeros((1, 3), np.int32)),
+        (np.zeros(nn), 3e-4, dt, 0.0, tear),
+        (kind, np.zeros(nn, np.int32), np.zeros((nn, 3)), np.zeros((nn, 3)), np.zeros(nn), idx, weight, tangent, lam,
+         np.zeros(nn)),
+        np.zeros(4), pos, quat, tissue_q,
     )  # fmt: skip
     assert lam[5] == pytest.approx(-tear * dt * dt, rel=1e-12)
     gap = np.linalg.norm((pos + quat_to_matrix(quat) @ needle.node_pos_body[5] - tissue_q[0])[:2])

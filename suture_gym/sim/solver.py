@@ -428,35 +428,12 @@ class Solver:
         tri_vertices = coupling.surface.tri_vertices
         eps = coupling.params.resistance_eps
         project_needle_rows(
-            coupling.needle_node_count,
-            needle.body_inv_mass,
-            needle.body_inv_inertia,
-            needle.node_pos_body,
-            needle_state.body_pos_prev,
-            needle_state.body_quat_prev,
-            tissue_inv_mass,
-            state.tissue.particle_q_prev,
-            tri_vertices,
-            coupling.strand_friction,
-            eps,
-            dt,
-            coupling.params.tip_friction,
-            coupling.params.tear_force,
-            work.row_kind,
-            work.row_tri,
-            work.row_bary,
-            work.row_contact_normal,
-            work.row_floor,
-            work.row_tissue,
-            work.row_weight,
-            work.row_tangent,
-            work.row_lambda,
-            work.row_friction_lambda,
-            work.tip_friction,
-            needle_state.body_pos,
-            needle_state.body_quat,
-            tissue_q,
-        )
+            (coupling.needle_node_count, needle.body_inv_mass, needle.body_inv_inertia, needle.node_pos_body,
+             needle_state.body_pos_prev, needle_state.body_quat_prev),
+            (tissue_inv_mass, state.tissue.particle_q_prev, tri_vertices),
+            (coupling.strand_friction, eps, dt, coupling.params.tip_friction, coupling.params.tear_force),
+            work.needle_rows, work.tip_friction, needle_state.body_pos, needle_state.body_quat, tissue_q,
+        )  # fmt: skip
         suture_q = state.suture.node_pos if state.suture is not None else np.zeros((0, 3))
         if state.suture is not None:
             project_suture_path_rows(
