@@ -10,22 +10,24 @@ from suture_gym.sim.model import Control, Model, State
 from suture_gym.sim.needle import NeedleModel, NeedleState, needle_point_world
 from suture_gym.sim.quat import quat_from_axis_angle, quat_from_rotation_vector, quat_mul, quat_to_matrix
 from suture_gym.sim.rod import (
-    BLOCK,
     RodModel,
     RodState,
     RodWork,
     StaticObstacles,
     SutureMaterial,
     SutureParams,
+    rod_detect_contacts,
+    rod_predict,
+    rod_solve_iteration,
+    segment_strain,
+)
+from suture_gym.sim.rod_solver import (
+    BLOCK,
     align_frames,
     assemble_rod_system,
     bend_twist_constraint,
     bend_twist_jacobian,
     guarded_inverse,
-    rod_detect_contacts,
-    rod_predict,
-    rod_solve_iteration,
-    segment_strain,
     solve_block_tridiagonal,
     stretch_shear_constraint,
     stretch_shear_jacobian,
@@ -194,13 +196,14 @@ def test_assembled_system_matches_dense_finite_difference_jacobians():
     normals = RNG.normal(size=(n, 3))
     work.contact_normal[:] = normals / np.linalg.norm(normals, axis=1, keepdims=True)
     align_frames(state.node_pos, model.seg_inv_inertia, state.seg_quat)
+    rod = (
+        model.node_inv_mass, model.seg_rest_length, model.seg_inv_inertia, model.seg_stretch_compliance,
+        model.bend_compliance, work.contact_obstacle_w,
+    )  # fmt: skip
+    needle_group = (True, needle.body_inv_mass, needle.body_inv_inertia, needle.swage_pos_body)
     assemble_rod_system(
-        state.node_pos, state.seg_quat, model.node_inv_mass, model.seg_rest_length, model.seg_inv_inertia,
-        model.seg_stretch_compliance, model.bend_compliance, work.seg_quat_start, work.seg_tension_prev,
-        work.contact_gap, work.contact_normal, work.lam, dt, True, ns.body_pos, ns.body_quat,
-        needle.body_inv_mass, needle.body_inv_inertia, needle.swage_pos_body, work.seg_rot, work.seg_s,
-        work.seg_winv, work.bend_b, work.seg_h, work.att_r, work.att_winv, work.contact_active, work.diag,
-        work.lower, work.rhs,
+        state.node_pos, state.seg_quat, rod, needle_group, work.start, work.frames, work.contacts, work.system,
+        work.lam, ns.body_pos, ns.body_quat, dt,
     )  # fmt: skip
     k = BLOCK
     ndof = 3 * n + 3 * (n - 1) + 6

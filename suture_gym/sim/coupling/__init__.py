@@ -76,7 +76,7 @@ Projection (called by :class:`~suture_gym.sim.solver.Solver`)
   (:func:`project_suture_path_rows`) and in the rod's solve, and they slide freely along the path.
 * Suture contact rows are one-sided contact rows inside the rod's direct solve, made two-way with the
   tissue: :func:`suture_contact_rows` gives each row the triangle's share of its inverse mass, which
-  :func:`~suture_gym.sim.rod.rod_iteration_kernel` adds to the row, and :func:`apply_contact_reaction` moves
+  :func:`~suture_gym.sim.rod_solver.rod_iteration_kernel` adds to the row, and :func:`apply_contact_reaction` moves
   the tissue by its share.
 * Node-access rows are Gauss-Seidel on the strand piece centred on the access point (:func:`project_access_rows`).
 * Contact rows of a node that started the substep inside the resistance layer push it out by at most
