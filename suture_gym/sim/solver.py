@@ -450,26 +450,11 @@ class Solver:
                 tissue_q,
             )
         project_access_rows(
-            work.access_count,
-            work.access_node,
-            work.access_weight,
-            work.access_rest,
-            work.access_tri,
-            work.access_bary,
-            coupling.needle_node_count,
-            needle.body_inv_mass,
-            needle.body_inv_inertia,
-            needle.node_pos_body,
-            work.suture_inv_mass,
-            tissue_inv_mass,
-            tri_vertices,
-            coupling.params.tear_force * dt * dt,
-            work.access_lambda,
-            needle_state.body_pos,
-            needle_state.body_quat,
-            suture_q,
-            tissue_q,
-        )
+            work.access_rows, work.access_count,
+            (coupling.needle_node_count, needle.body_inv_mass, needle.body_inv_inertia, needle.node_pos_body),
+            work.suture_inv_mass, tissue_inv_mass, tri_vertices, coupling.params.tear_force * dt * dt,
+            work.access_lambda, needle_state.body_pos, needle_state.body_quat, suture_q, tissue_q,
+        )  # fmt: skip
 
     def _project_suture(self, model: Model, state: State, dt: float) -> None:
         """The suture's direct solve (:func:`~suture_gym.sim.rod.rod_solve_iteration`, its contact rows made

@@ -208,29 +208,7 @@ def tip_events(
     open_k = n - 1 if n > 0 and state.path_open[n - 1] else -1
     tip_sdist = state.strand_sdist[0]
     if open_k < 0:
-        if state.tip_anchor_tri >= 0:
-            tri, bary = int(state.tip_anchor_tri), state.tip_anchor_bary.copy()
-        else:
-            tri, bary = int(state.strand_tri[0]), state.strand_bary[0].copy()
-        if state.tip_force >= params.puncture_force and tri >= 0 and not model.tri_rigid[tri]:
-            if n >= params.max_paths or state.pathnode_count >= params.max_path_nodes:
-                state.overflow = True
-                return
-            state.tip_anchor_tri = -1
-            state.path_first[n] = state.pathnode_count
-            state.path_len[n] = 0
-            state.path_open[n] = True
-            state.path_entered[n] = False
-            state.path_entry_tri[n] = tri
-            state.path_entry_bary[n] = bary
-            state.path_exit_tri[n] = -1
-            state.path_exit_bary[n] = 0.0
-            state.path_sigma_entry[n] = 0.0
-            state.path_sigma_exit[n] = -np.inf
-            state.path_count = n + 1
-            state.punctures += 1
-            tet, tet_bary = surface_point_tet(model, tissue, tri, bary)
-            append_path_nodes(state, model, np.array([tet]), tet_bary[None, :])
+        _puncture(model, state, tissue)
         return
     if tip_sdist < 0.0 and not state.path_entered[open_k]:
         # the tip is through: the entry is where the strand crosses the surface (the puncture recorded the
@@ -311,3 +289,34 @@ def release_finished_paths(model: CouplingModel, state: CouplingState, tissue_q:
             release = state.path_sigma_exit[k] >= state.path_sigma_entry[k]
         if release:
             release_path(state, k)
+
+
+def _puncture(model: CouplingModel, state: CouplingState, tissue) -> None:
+    """Puncture (module docstring, detection step 3) while no path is open: once the previous substep's tip
+    force reaches ``puncture_force`` at a deformable face (the anchor's, else the tip's closest), a new open
+    path starts there with its entry access point and first node; a full path vector flags overflow."""
+    params = model.params
+    n = state.path_count
+    if state.tip_anchor_tri >= 0:
+        tri, bary = int(state.tip_anchor_tri), state.tip_anchor_bary.copy()
+    else:
+        tri, bary = int(state.strand_tri[0]), state.strand_bary[0].copy()
+    if state.tip_force >= params.puncture_force and tri >= 0 and not model.tri_rigid[tri]:
+        if n >= params.max_paths or state.pathnode_count >= params.max_path_nodes:
+            state.overflow = True
+            return
+        state.tip_anchor_tri = -1
+        state.path_first[n] = state.pathnode_count
+        state.path_len[n] = 0
+        state.path_open[n] = True
+        state.path_entered[n] = False
+        state.path_entry_tri[n] = tri
+        state.path_entry_bary[n] = bary
+        state.path_exit_tri[n] = -1
+        state.path_exit_bary[n] = 0.0
+        state.path_sigma_entry[n] = 0.0
+        state.path_sigma_exit[n] = -np.inf
+        state.path_count = n + 1
+        state.punctures += 1
+        tet, tet_bary = surface_point_tet(model, tissue, tri, bary)
+        append_path_nodes(state, model, np.array([tet]), tet_bary[None, :])

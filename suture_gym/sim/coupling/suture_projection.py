@@ -204,36 +204,27 @@ def _strand_point(node, needle_node_count, needle_pos, needle_quat, needle_node_
 
 
 @njit(cache=True)
-def project_access_rows(
-    access_count,
-    access_node,
-    access_weight,
-    access_rest,
-    access_tri,
-    access_bary,
-    needle_node_count,
-    needle_inv_mass,
-    needle_inv_inertia_body,
-    needle_node_body,
-    suture_inv_mass,
-    tissue_inv_mass,
-    tri_vertices,
-    force_cap,
-    access_lambda,
-    needle_pos,
-    needle_quat,
-    suture_q,
-    tissue_q,
-):
-    """One Gauss-Seidel pass over the node-access rows (eq. 3, inequality ``C <= 0``), two-way, each
-    multiplier kept within ``force_cap`` (kg m, the tear force times ``dt^2``) in magnitude.
+def project_access_rows(access, access_count, needle, suture_inv_mass, tissue_inv_mass, tri_vertices, force_cap,
+                        access_lambda, needle_pos, needle_quat, suture_q, tissue_q):  # fmt: skip
+    """One Gauss-Seidel pass over the first ``access_count`` node-access rows (eq. 3, inequality ``C <= 0``),
+    two-way, each multiplier kept within ``force_cap`` (kg m, the tear force times ``dt^2``) in magnitude.
 
     The strand piece's ends are ``pa = w0 x0 + w1 x1`` and ``pb = w2 x2 + w3 x3`` (strand nodes
     ``access_node``, weights ``access_weight``), so node ``k`` gets the gradient ``w_k ga`` or ``w_k gb``.
     Needle nodes are points of the rigid needle (their gradients add up into one body Jacobian, generalised
     inverse mass), suture nodes particles, and the access point ``b = sum_v bary_v x_v`` gives its triangle's
     vertices ``-bary_v (ga + gb)``. Updates the needle pose, ``suture_q``, ``tissue_q`` and ``access_lambda``.
+
+    Args:
+        access: ``CouplingWork.access_rows``: ``(access_node (2K, 4), access_weight (2K, 4), access_rest (2K,) m,
+            access_tri (2K,), access_bary (2K, 3))``.
+        needle: ``(Nn, inv_mass 1/kg, inv_inertia_body (3, 3), node_body (Nn, 3) m)``.
+        suture_inv_mass: ``(Ns,)`` 1/kg. tissue_inv_mass: ``(N,)`` 1/kg. tri_vertices: ``(F, 3)``.
+        access_lambda: ``(2K,)`` kg m. needle_pos: ``(3,)`` m. needle_quat: ``(4,)``. suture_q: ``(Ns, 3)`` m.
+        tissue_q: ``(N, 3)`` m.
     """
+    access_node, access_weight, access_rest, access_tri, access_bary = access
+    needle_node_count, needle_inv_mass, needle_inv_inertia_body, needle_node_body = needle
     nn = needle_node_count
     for a in range(access_count):
         tri = access_tri[a]
