@@ -606,11 +606,10 @@ def _floor(start_height, depenetration, eps=3e-4):
     tri = np.array([[0, 1, 2]], dtype=np.int32)
     tissue_q = np.array([[-0.01, -0.01, 0.0], [0.02, -0.01, 0.0], [-0.01, 0.02, 0.0]])
     out = np.full(1, np.nan)
-    contact_floors(
-        1, eps, depenetration, np.array([ROW_TRIANGLE], np.int8), np.zeros(1, np.int32),
-        np.full((1, 3), 1.0 / 3.0), np.array([[0.0, 0.0, 1.0]]), tri, np.array([0.0, 0.0, start_height]),
-        np.array([1.0, 0.0, 0.0, 0.0]), np.zeros((1, 3)), np.zeros((0, 3)), tissue_q, out,
-    )  # fmt: skip
+    rows = (np.array([ROW_TRIANGLE], np.int8), np.zeros(1, np.int32), np.full((1, 3), 1.0 / 3.0),
+            np.array([[0.0, 0.0, 1.0]]), out)  # fmt: skip
+    needle_start = (np.array([0.0, 0.0, start_height]), np.array([1.0, 0.0, 0.0, 0.0]), np.zeros((1, 3)))
+    contact_floors(1, eps, depenetration, rows, tri, needle_start, np.zeros((0, 3)), tissue_q)
     return float(out[0])
 
 

@@ -347,48 +347,29 @@ class Solver:
             return
         work = state.work.coupling_work
         suture_q = state.suture.node_pos if state.suture is not None else np.zeros((0, 3))
+        suture_q_prev = state.suture.node_pos_prev if state.suture is not None else np.zeros((0, 3))
         strand_positions_kernel(
             state.needle.body_pos, state.needle.body_quat, model.needle.node_pos_body, suture_q, work.strand_q
         )
         strand_positions_kernel(
             state.needle.body_pos_prev, state.needle.body_quat_prev, model.needle.node_pos_body,
-            state.suture.node_pos_prev if state.suture is not None else np.zeros((0, 3)), work.strand_q_start,
+            suture_q_prev, work.strand_q_start,
         )  # fmt: skip
         coupling_detect(
             coupling, state.coupling, work, model.tissue, state.tissue.particle_q, work.strand_q, work.strand_q_start,
         )  # fmt: skip
         contact_floors(
-            coupling.needle_node_count,
-            coupling.params.resistance_eps,
-            coupling.params.depenetration_speed * dt,
-            work.row_kind,
-            work.row_tri,
-            work.row_bary,
-            work.row_contact_normal,
-            coupling.surface.tri_vertices,
-            state.needle.body_pos_prev,
-            state.needle.body_quat_prev,
-            model.needle.node_pos_body,
-            state.suture.node_pos_prev if state.suture is not None else np.zeros((0, 3)),
+            coupling.needle_node_count, coupling.params.resistance_eps, coupling.params.depenetration_speed * dt,
+            work.contact_rows, coupling.surface.tri_vertices,
+            (state.needle.body_pos_prev, state.needle.body_quat_prev, model.needle.node_pos_body), suture_q_prev,
             state.tissue.particle_q_prev,
-            work.row_floor,
-        )
+        )  # fmt: skip
         if model.suture is not None:
             embedded_inv_mass(
-                coupling.needle_node_count,
-                work.row_kind,
-                work.row_tissue,
-                work.row_weight,
-                work.access_count,
-                work.access_node,
-                work.access_weight,
-                work.access_tri,
-                work.access_bary,
-                coupling.surface.tri_vertices,
-                model.tissue.particle_inv_mass,
-                model.suture.node_inv_mass,
+                coupling.needle_node_count, work.node_rows, work.access_rows, work.access_count,
+                coupling.surface.tri_vertices, model.tissue.particle_inv_mass, model.suture.node_inv_mass,
                 work.suture_inv_mass,
-            )
+            )  # fmt: skip
 
     def _project(self, model: Model, state: State, dt: float) -> None:
         """Phase 3, one sweep over every constraint group."""
@@ -484,10 +465,9 @@ class Solver:
                 rod_detect_contacts(suture, rod_state, work, model.obstacles)
             if coupling is not None:
                 suture_contact_rows(
-                    coupling.needle_node_count, coupling.params.resistance_eps, cwork.row_kind, cwork.row_tri,
-                    cwork.row_bary, cwork.row_contact_normal, cwork.row_floor, coupling.surface.tri_vertices,
-                    state.tissue.particle_q, model.tissue.particle_inv_mass, rod_state.node_pos, work.contact_gap,
-                    work.contact_normal, cwork.suture_contact_w,
+                    coupling.needle_node_count, coupling.params.resistance_eps, cwork.contact_rows,
+                    coupling.surface.tri_vertices, state.tissue.particle_q, model.tissue.particle_inv_mass,
+                    rod_state.node_pos, work.contact_gap, work.contact_normal, cwork.suture_contact_w,
                 )  # fmt: skip
             residual = rod_solve_iteration(
                 suture, rod_state, work, dt, model.needle, state.needle, self.rod_tolerance, inv_mass, contact_w
@@ -497,9 +477,9 @@ class Solver:
             state.work.rod_solves += 1
             if coupling is not None:
                 apply_contact_reaction(
-                    coupling.needle_node_count, cwork.row_kind, cwork.row_tri, cwork.row_bary,
-                    coupling.surface.tri_vertices, work.contact_normal, work.z, model.tissue.particle_inv_mass,
-                    cwork.row_lambda, state.tissue.particle_q,
+                    coupling.needle_node_count, cwork.contact_rows, coupling.surface.tri_vertices,
+                    work.contact_normal, work.z, model.tissue.particle_inv_mass, cwork.row_lambda,
+                    state.tissue.particle_q,
                 )  # fmt: skip
 
     def _update_velocities(self, model: Model, state: State, dt: float) -> bool:

@@ -214,22 +214,8 @@ def contact_frames(
 
 
 @njit(cache=True)
-def contact_floors(
-    needle_node_count,
-    eps,
-    depenetration,
-    row_kind,
-    row_tri,
-    row_bary,
-    row_normal,
-    tri_vertices,
-    needle_pos_prev,
-    needle_quat_prev,
-    needle_node_body,
-    suture_q_prev,
-    tissue_q_prev,
-    out_floor,
-):
+def contact_floors(needle_node_count, eps, depenetration, contact_rows, tri_vertices, needle_start, suture_q_prev,
+                   tissue_q_prev):  # fmt: skip
     """Lower bound of each contact row's ``C`` this substep, from where the node was at the start of it:
     ``floor = min(0, C_0 + depenetration)`` with ``C_0`` the row's constraint (:func:`node_surface_constraint`,
     same frame) at the start-of-substep positions and ``depenetration`` (m) the most a node may be moved out
@@ -239,9 +225,16 @@ def contact_floors(
     whole penetration the prediction caused, as a rigid contact must. A node that starts inside by ``-C_0``
     (the tissue folded over it, a path was released around it, a detection found it late) is moved out by at
     most ``depenetration`` per substep, so resolving an old penetration never launches the node or the tissue
-    (the "maximum depenetration velocity" of game physics engines). Rows of other kinds get 0. Writes
-    ``out_floor`` (M,) in m.
+    (the "maximum depenetration velocity" of game physics engines). Rows of other kinds get 0.
+
+    Args:
+        contact_rows: ``CouplingWork.contact_rows``, ``(row_kind, row_tri, row_bary, row_contact_normal,
+            row_floor)``; writes ``row_floor`` (M,) in m.
+        needle_start: ``(pos_prev (3,) m, quat_prev (4,), node_body (Nn, 3) m)``, the needle at the substep's start.
+        suture_q_prev: ``(Ns, 3)`` m. tissue_q_prev: ``(N, 3)`` m.
     """
+    row_kind, row_tri, row_bary, row_normal, out_floor = contact_rows
+    needle_pos_prev, needle_quat_prev, needle_node_body = needle_start
     nn = needle_node_count
     r = quat_to_matrix(needle_quat_prev)
     for i in range(row_kind.shape[0]):

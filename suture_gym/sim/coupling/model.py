@@ -285,7 +285,8 @@ class CouplingWork:
         suture_contact_w: ``(Ns,)`` generalised inverse mass (1/kg) of the tissue point of each suture node's
             contact row in the rod's solve.
         node_rows: the tuple ``(row_kind, row_tri, row_tissue, row_weight, row_tangent)`` and access_rows:
-            ``(access_node, access_weight, access_rest, access_tri, access_bary)`` and needle_rows: ``(row_kind,
+            ``(access_node, access_weight, access_rest, access_tri, access_bary)``, contact_rows: ``(row_kind,
+            row_tri, row_bary, row_contact_normal, row_floor)`` and needle_rows: ``(row_kind,
             row_tri, row_bary, row_contact_normal, row_floor, row_tissue, row_weight, row_tangent, row_lambda,
             row_friction_lambda)``, built once: the kernels take these groups as one argument each (the same
             arrays, not copies).
@@ -322,6 +323,7 @@ class CouplingWork:
         self.suture_inv_mass = np.zeros(model.suture_node_count)
         self.node_rows = (self.row_kind, self.row_tri, self.row_tissue, self.row_weight, self.row_tangent)
         self.access_rows = (self.access_node, self.access_weight, self.access_rest, self.access_tri, self.access_bary)
+        self.contact_rows = (self.row_kind, self.row_tri, self.row_bary, self.row_contact_normal, self.row_floor)
         self.needle_rows = (
             self.row_kind, self.row_tri, self.row_bary, self.row_contact_normal, self.row_floor, self.row_tissue,
             self.row_weight, self.row_tangent, self.row_lambda, self.row_friction_lambda,

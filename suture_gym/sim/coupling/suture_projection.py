@@ -22,21 +22,8 @@ from suture_gym.sim.rigid import (
 
 
 @njit(cache=True)
-def embedded_inv_mass(
-    needle_node_count,
-    row_kind,
-    row_tissue,
-    row_weight,
-    access_count,
-    access_node,
-    access_weight,
-    access_tri,
-    access_bary,
-    tri_vertices,
-    tissue_inv_mass,
-    suture_inv_mass,
-    out,
-):
+def embedded_inv_mass(needle_node_count, node_rows, access_rows, access_count, tri_vertices, tissue_inv_mass,
+                      suture_inv_mass, out):  # fmt: skip
     """Inverse masses (1/kg) the projections use for the suture nodes this substep: a node held on a path
     (node-path row) carries the inertia of the tissue point it is embedded in, ``min(w_node, sum_k b_k^2 w_k)``,
     and a node of a strand piece through an access point that of the access point,
@@ -52,6 +39,8 @@ def embedded_inv_mass(
     keeps its own mass: it cannot dent the tissue (an embedded mass there makes the contact push the surface
     by half of every penetration, which turned out violent).
     """
+    row_kind, _, row_tissue, row_weight, _ = node_rows
+    access_node, access_weight, _, access_tri, access_bary = access_rows
     nn = needle_node_count
     for j in range(suture_inv_mass.shape[0]):
         out[j] = suture_inv_mass[j]
@@ -120,28 +109,15 @@ def project_suture_path_rows(
 
 
 @njit(cache=True)
-def suture_contact_rows(
-    needle_node_count,
-    eps,
-    row_kind,
-    row_tri,
-    row_bary,
-    row_contact_normal,
-    row_floor,
-    tri_vertices,
-    tissue_q,
-    tissue_inv_mass,
-    suture_q,
-    out_gap,
-    out_normal,
-    out_tissue_w,
-):
+def suture_contact_rows(needle_node_count, eps, contact_rows, tri_vertices, tissue_q, tissue_inv_mass, suture_q,
+                        out_gap, out_normal, out_tissue_w):  # fmt: skip
     """The suture nodes' contact rows (:func:`node_surface_constraint` in the row's frame) as the rod's
     one-sided contact rows: ``gap = C - floor`` (``row_floor``, :func:`contact_floors`) at the current
     positions, ``normal = n``, and the generalised inverse mass of the surface point ``sum_v b_v^2 w_v`` (1/kg)
     in ``out_tissue_w``. Nodes without a contact row (and node 0, on the swage) keep their ``out_gap`` and
     ``out_normal`` (+inf, or a static obstacle's, :func:`~suture_gym.sim.rod.rod_detect_contacts`) and get
     ``out_tissue_w = 0``. Writes ``out_gap`` (Ns,), ``out_normal`` (Ns, 3), ``out_tissue_w`` (Ns,)."""
+    row_kind, row_tri, row_bary, row_contact_normal, row_floor = contact_rows
     nn = needle_node_count
     for j in range(suture_q.shape[0]):
         out_tissue_w[j] = 0.0
@@ -168,21 +144,12 @@ def suture_contact_rows(
 
 
 @njit(cache=True)
-def apply_contact_reaction(
-    needle_node_count,
-    row_kind,
-    row_tri,
-    row_bary,
-    tri_vertices,
-    contact_normal,
-    z,
-    tissue_inv_mass,
-    row_lambda,
-    tissue_q,
-):
+def apply_contact_reaction(needle_node_count, contact_rows, tri_vertices, contact_normal, z, tissue_inv_mass,
+                           row_lambda, tissue_q):  # fmt: skip
     """Give the tissue the reaction of the rod's contact steps ``z[j, 6]`` (kg m) on suture nodes with a
     node-triangle row: triangle vertex ``v`` moves by ``-w_v b_v z normal``, so the exchange conserves
     momentum. Adds each step to ``row_lambda``. Updates ``tissue_q``."""
+    row_kind, row_tri, row_bary = contact_rows[:3]
     nn = needle_node_count
     for j in range(1, z.shape[0]):
         i = nn + j - 1
