@@ -258,13 +258,7 @@ def _nearest_triangle(
     py,
     pz,
     max_d2,
-    node_lo,
-    node_hi,
-    node_child,
-    node_first,
-    node_count,
-    sorted_tri,
-    tri_vertices,
+    tree,
     vertex_q,
     stack,
     stack_d2,
@@ -272,8 +266,10 @@ def _nearest_triangle(
     """Closest triangle to p with squared distance <= max_d2, nearest child first, boxes pruned.
 
     Returns (tri, u, v, w, feature, d2); tri = -1 when none is that close. Equal distances go to the lower
-    triangle index, so the answer does not depend on the traversal order.
+    triangle index, so the answer does not depend on the traversal order. ``tree`` is the surface BVH's
+    :attr:`~suture_gym.sim.bvh.BVH.tree`.
     """
+    node_lo, node_hi, node_child, node_first, node_count, sorted_tri, tri_vertices = tree
     best_tri = -1
     best_d2 = max_d2
     best_u = 0.0
@@ -342,18 +338,13 @@ def _nearest_triangle(
 def closest_kernel(
     points,
     max_d2,
-    node_lo,
-    node_hi,
-    node_child,
-    node_first,
-    node_count,
-    sorted_tri,
-    tri_vertices,
+    tree,
     vertex_q,
     out_tri,
     out_bary,
     out_dist,
 ):
+    node_lo, node_hi, node_child, node_first, node_count, sorted_tri, tri_vertices = tree
     stack = np.empty(node_child.shape[0] + 1, np.int32)
     stack_d2 = np.empty(node_child.shape[0] + 1)
     for i in range(points.shape[0]):
@@ -362,13 +353,7 @@ def closest_kernel(
             points[i, 1],
             points[i, 2],
             max_d2,
-            node_lo,
-            node_hi,
-            node_child,
-            node_first,
-            node_count,
-            sorted_tri,
-            tri_vertices,
+            tree,
             vertex_q,
             stack,
             stack_d2,
@@ -389,13 +374,7 @@ def closest_kernel(
 @njit(cache=True)
 def signed_distance_kernel(
     points,
-    node_lo,
-    node_hi,
-    node_child,
-    node_first,
-    node_count,
-    sorted_tri,
-    tri_vertices,
+    tree,
     tri_neighbors,
     vertex_tri_start,
     vertex_tri_index,
@@ -404,6 +383,7 @@ def signed_distance_kernel(
     out_tri,
     out_bary,
 ):
+    node_lo, node_hi, node_child, node_first, node_count, sorted_tri, tri_vertices = tree
     stack = np.empty(node_child.shape[0] + 1, np.int32)
     stack_d2 = np.empty(node_child.shape[0] + 1)
     for i in range(points.shape[0]):
@@ -415,13 +395,7 @@ def signed_distance_kernel(
             py,
             pz,
             np.inf,
-            node_lo,
-            node_hi,
-            node_child,
-            node_first,
-            node_count,
-            sorted_tri,
-            tri_vertices,
+            tree,
             vertex_q,
             stack,
             stack_d2,
@@ -486,13 +460,7 @@ def _tet_bary(vertex_q, i0, i1, i2, i3, px, py, pz):
 def locate_kernel(
     points,
     tolerance,
-    node_lo,
-    node_hi,
-    node_child,
-    node_first,
-    node_count,
-    sorted_tet,
-    tet_vertices,
+    tree,
     vertex_q,
     out_tet,
     out_bary,
@@ -502,6 +470,7 @@ def locate_kernel(
     A tet with all coordinates >= -tolerance lies inside its box grown by 3 tolerance x (box extent) per axis,
     so boxes are tested with that margin. Equal scores go to the lower tet index.
     """
+    node_lo, node_hi, node_child, node_first, node_count, sorted_tet, tet_vertices = tree
     stack = np.empty(node_child.shape[0] + 1, np.int32)
     grow = 3.0 * tolerance
     for i in range(points.shape[0]):
@@ -641,13 +610,7 @@ def _segment_triangle(p0x, p0y, p0z, p1x, p1y, p1z, i0, i1, i2, vertex_q):
 def crossings_kernel(
     seg_start,
     seg_end,
-    node_lo,
-    node_hi,
-    node_child,
-    node_first,
-    node_count,
-    sorted_tri,
-    tri_vertices,
+    tree,
     vertex_q,
     out_segment,
     out_tri,
@@ -656,6 +619,7 @@ def crossings_kernel(
     out_direction,
 ):
     """Write up to len(out_segment) crossings; return the total number found (may exceed the capacity)."""
+    node_lo, node_hi, node_child, node_first, node_count, sorted_tri, tri_vertices = tree
     capacity = out_segment.shape[0]
     stack = np.empty(node_child.shape[0] + 1, np.int32)
     count = 0
