@@ -32,21 +32,33 @@ from suture_gym.sim.coupling import (
     path_spacing_count,
     project_needle_rows,
     project_onto_path,
-    project_particles,
-    rigid_apply,
-    rigid_generalized_inv_mass,
     surface_normal,
     track_sigma,
     xpbd_delta_lambda,
 )
 from suture_gym.sim.mesh import box_tet_grid
 from suture_gym.sim.model import TissueMaterial, TissueModel
-from suture_gym.sim.needle import NeedleModel, NeedleState, apply_point_impulse, point_inv_mass, world_inv_inertia
+from suture_gym.sim.needle import NeedleModel, NeedleState
 from suture_gym.sim.quat import quat_from_axis_angle, quat_mul, quat_to_matrix
+from suture_gym.sim.rigid import (
+    apply_point_impulse,
+    point_inv_mass,
+    rigid_apply,
+    rigid_generalized_inv_mass,
+    world_inv_inertia,
+)
 from suture_gym.sim.rod import RodModel, SutureParams
 
 RNG = np.random.default_rng(7)
 H = 1e-7  # central-difference step, m
+
+
+def project_particles(c, grads, inv_mass, alpha_tilde, lam):
+    """One XPBD projection of a constraint on point masses (Macklin et al. 2016): ``(dlambda, dx)`` with
+    ``dx_i = w_i grad_i C dlambda``; grads (k, 3), inv_mass (k,) 1/kg. The reference the kernels are checked by."""
+    w_sum = float(np.einsum("i,ij,ij->", inv_mass, grads, grads))
+    dlam = xpbd_delta_lambda(c, w_sum, alpha_tilde, lam)
+    return dlam, inv_mass[:, None] * dlam * grads
 
 
 def _fd_gradient(fn, x, h=H):
@@ -594,11 +606,10 @@ def _floor(start_height, depenetration, eps=3e-4):
     tri = np.array([[0, 1, 2]], dtype=np.int32)
     tissue_q = np.array([[-0.01, -0.01, 0.0], [0.02, -0.01, 0.0], [-0.01, 0.02, 0.0]])
     out = np.full(1, np.nan)
-    contact_floors(
-        1, eps, depenetration, np.array([ROW_TRIANGLE], np.int8), np.zeros(1, np.int32),
-        np.full((1, 3), 1.0 / 3.0), np.array([[0.0, 0.0, 1.0]]), tri, np.array([0.0, 0.0, start_height]),
-        np.array([1.0, 0.0, 0.0, 0.0]), np.zeros((1, 3)), np.zeros((0, 3)), tissue_q, out,
-    )  # fmt: skip
+    rows = (np.array([ROW_TRIANGLE], np.int8), np.zeros(1, np.int32), np.full((1, 3), 1.0 / 3.0),
+            np.array([[0.0, 0.0, 1.0]]), out)  # fmt: skip
+    needle_start = (np.array([0.0, 0.0, start_height]), np.array([1.0, 0.0, 0.0, 0.0]), np.zeros((1, 3)))
+    contact_floors(1, eps, depenetration, rows, tri, needle_start, np.zeros((0, 3)), tissue_q)
     return float(out[0])
 
 
@@ -625,10 +636,12 @@ def _anchor_projection(friction, offset, penetration=1e-4, eps=3e-4):
     normals = np.tile(normal, (nn, 1))
     lam, lam_t, slip = np.zeros(nn), np.zeros(nn), np.zeros(4)
     project_needle_rows(
-        nn, needle.body_inv_mass, needle.body_inv_inertia, needle.node_pos_body, pos.copy(), quat.copy(),
-        np.zeros(3), tissue_q.copy(), np.array([[0, 1, 2]], np.int32), np.zeros(nn), eps, 1e-3, friction, 4.0,
-        kind, np.zeros(nn, np.int32), bary, normals, np.zeros(nn), np.zeros((nn, 8), np.int32), np.zeros((nn, 8)),
-        np.zeros((nn, 3)), lam, lam_t, slip, pos, quat, tissue_q,
+        (nn, needle.body_inv_mass, needle.body_inv_inertia, needle.node_pos_body, pos.copy(), quat.copy()),
+        (np.zeros(3), tissue_q.copy(), np.array([[0, 1, 2]], np.int32)),
+        (np.zeros(nn), eps, 1e-3, friction, 4.0),
+        (kind, np.zeros(nn, np.int32), bary, normals, np.zeros(nn), np.zeros((nn, 8), np.int32), np.zeros((nn, 8)),
+         np.zeros((nn, 3)), lam, lam_t),
+        slip, pos, quat, tissue_q,
     )  # fmt: skip
     new_tip = pos + quat_to_matrix(quat) @ needle.node_pos_body[0]
     return new_tip - anchor, lam[0], slip
@@ -665,13 +678,13 @@ def test_a_path_row_transmits_at_most_the_tear_force():
     tangent = np.tile([0.0, 0.0, 1.0], (nn, 1))
     dt, tear = 1e-3, 0.5
     lam = np.zeros(nn)
-    args = (
-        nn, needle.body_inv_mass, needle.body_inv_inertia, needle.node_pos_body, pos.copy(), quat.copy(),
-        np.zeros(4), tissue_q.copy(), np.zeros((1, 3), np.int32), np.zeros(nn), 3e-4, dt, 0.0,
-    )  # fmt: skip
     project_needle_rows(
-        *args, tear, kind, np.zeros(nn, np.int32), np.zeros((nn, 3)), np.zeros((nn, 3)), np.zeros(nn), idx, weight,
-        tangent, lam, np.zeros(nn), np.zeros(4), pos, quat, tissue_q,
+        (nn, needle.body_inv_mass, needle.body_inv_inertia, needle.node_pos_body, pos.copy(), quat.copy()),
+        (np.zeros(4), tissue_q.copy(), np.zeros((1, 3), np.int32)),
+        (np.zeros(nn), 3e-4, dt, 0.0, tear),
+        (kind, np.zeros(nn, np.int32), np.zeros((nn, 3)), np.zeros((nn, 3)), np.zeros(nn), idx, weight, tangent, lam,
+         np.zeros(nn)),
+        np.zeros(4), pos, quat, tissue_q,
     )  # fmt: skip
     assert lam[5] == pytest.approx(-tear * dt * dt, rel=1e-12)
     gap = np.linalg.norm((pos + quat_to_matrix(quat) @ needle.node_pos_body[5] - tissue_q[0])[:2])

@@ -13,7 +13,6 @@ from suture_gym.sim.needle import (
     NeedleShape,
     NeedleState,
     VirtualCoupling,
-    apply_point_impulse,
     arc_wire_mass_properties,
     needle_apply_impulse,
     needle_constraint_wrench,
@@ -23,12 +22,10 @@ from suture_gym.sim.needle import (
     needle_point_world,
     needle_predict,
     needle_update_velocities,
-    point_inv_mass,
-    point_inv_mass_matrix,
-    world_inv_inertia,
     wrench_at_com,
 )
 from suture_gym.sim.quat import quat_from_axis_angle, quat_to_matrix
+from suture_gym.sim.rigid import apply_point_impulse, point_inv_mass, point_inv_mass_matrix, world_inv_inertia
 
 ZERO_G = np.zeros(3)
 

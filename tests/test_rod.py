@@ -6,33 +6,46 @@ import math
 import numpy as np
 import pytest
 
+from suture_gym.sim.model import Control, Model, State
 from suture_gym.sim.needle import NeedleModel, NeedleState, needle_point_world
 from suture_gym.sim.quat import quat_from_axis_angle, quat_from_rotation_vector, quat_mul, quat_to_matrix
 from suture_gym.sim.rod import (
-    BLOCK,
     RodModel,
     RodState,
     RodWork,
     StaticObstacles,
     SutureMaterial,
     SutureParams,
+    rod_detect_contacts,
+    rod_predict,
+    rod_solve_iteration,
+    segment_strain,
+)
+from suture_gym.sim.rod_solver import (
+    BLOCK,
     align_frames,
     assemble_rod_system,
     bend_twist_constraint,
     bend_twist_jacobian,
     guarded_inverse,
-    rod_detect_contacts,
-    rod_project,
-    rod_solve_iteration,
-    segment_strain,
     solve_block_tridiagonal,
-    step_strands,
     stretch_shear_constraint,
     stretch_shear_jacobian,
 )
+from suture_gym.sim.solver import Solver
 
 RNG = np.random.default_rng(3)
 G = (0.0, 0.0, -9.81)
+SOLVER = Solver()  # rod_iterations 8, rod_tolerance 1e-6
+
+
+def step_solver(model, rod_state, steps, needle_state=None, suture_force=None, dt=1e-3):
+    """``steps`` substeps of ``model`` through Solver.step; ``rod_state`` (and ``needle_state``) advance in place."""
+    state = State.initial(model, needle=needle_state, suture=rod_state)
+    control = Control(suture_force=suture_force)
+    for _ in range(steps):
+        SOLVER.step(model, state, control, dt)
+    return state
 
 
 def turned(q, theta):
@@ -183,13 +196,14 @@ def test_assembled_system_matches_dense_finite_difference_jacobians():
     normals = RNG.normal(size=(n, 3))
     work.contact_normal[:] = normals / np.linalg.norm(normals, axis=1, keepdims=True)
     align_frames(state.node_pos, model.seg_inv_inertia, state.seg_quat)
+    rod = (
+        model.node_inv_mass, model.seg_rest_length, model.seg_inv_inertia, model.seg_stretch_compliance,
+        model.bend_compliance, work.contact_obstacle_w,
+    )  # fmt: skip
+    needle_group = (True, needle.body_inv_mass, needle.body_inv_inertia, needle.swage_pos_body)
     assemble_rod_system(
-        state.node_pos, state.seg_quat, model.node_inv_mass, model.seg_rest_length, model.seg_inv_inertia,
-        model.seg_stretch_compliance, model.bend_compliance, work.seg_quat_start, work.seg_tension_prev,
-        work.contact_gap, work.contact_normal, work.lam, dt, True, ns.body_pos, ns.body_quat,
-        needle.body_inv_mass, needle.body_inv_inertia, needle.swage_pos_body, work.seg_rot, work.seg_s,
-        work.seg_winv, work.bend_b, work.seg_h, work.att_r, work.att_winv, work.contact_active, work.diag,
-        work.lower, work.rhs,
+        state.node_pos, state.seg_quat, rod, needle_group, work.start, work.frames, work.contacts, work.system,
+        work.lam, ns.body_pos, ns.body_quat, dt,
     )  # fmt: skip
     k = BLOCK
     ndof = 3 * n + 3 * (n - 1) + 6
@@ -289,24 +303,21 @@ def replace_params(params, **kwargs):
 def test_pulled_rod_stays_inextensible_and_still():
     model = small_rod()
     state = RodState.straight(model, [0.0, 0.0, 0.1], [0.0, 0.0, -1.0])
-    work = RodWork(model)
     force = np.zeros((model.node_count, 3))
     force[-1] = [0.0, 0.0, -1.0]
-    for _ in range(200):
-        step_strands(model, state, work, 1e-3, gravity=G, node_force=force)
+    full = step_solver(Model(suture=model, gravity=G), state, 200, suture_force=force)
     assert np.abs(segment_strain(model, state)).max() < 1e-9
     assert np.abs(state.node_vel).max() < 1e-8
+    assert 1 <= full.work.rod_solves <= 2  # at rest one or two direct solves converge
 
 
 def test_compliant_stretch_matches_hooke():
     """With ``inextensible=False`` a hanging 1 N load stretches each segment by T / (E A)."""
     model = small_rod(inextensible=False, damping=50.0)
     state = RodState.straight(model, [0.0, 0.0, 0.1], [0.0, 0.0, -1.0])
-    work = RodWork(model)
     force = np.zeros((model.node_count, 3))
     force[-1] = [0.0, 0.0, -1.0]
-    for _ in range(400):
-        step_strands(model, state, work, 1e-3, gravity=(0.0, 0.0, 0.0), node_force=force)
+    step_solver(Model(suture=model, gravity=(0.0, 0.0, 0.0)), state, 400, suture_force=force)
     ea = model.params.material.youngs_modulus * math.pi * model.radius**2
     np.testing.assert_allclose(segment_strain(model, state), 1.0 / ea, rtol=1e-4)
 
@@ -319,14 +330,12 @@ def test_needle_attachment_is_two_way_and_conserves_momentum():
     state = RodState.straight(model, swage, [1.0, 0.5, 0.0])
     state.node_vel[:] = RNG.normal(size=state.node_vel.shape) * 0.05
     ns.body_vel[:] = [0.0, 0.02, -0.01]
-    work = RodWork(model)
 
     def momentum():
         return needle.body_mass * ns.body_vel + model.node_mass @ state.node_vel
 
     p0 = momentum()
-    for _ in range(100):
-        step_strands(model, state, work, 1e-3, gravity=(0.0, 0.0, 0.0), needle_model=needle, needle_state=ns)
+    step_solver(Model(needle=needle, suture=model, gravity=(0.0, 0.0, 0.0)), state, 100, needle_state=ns)
     np.testing.assert_allclose(momentum(), p0, atol=1e-12 * needle.body_mass)
     gap = state.node_pos[0] - needle_point_world(needle, ns, needle.swage_pos_body)
     assert np.linalg.norm(gap) < 1e-12
@@ -334,7 +343,7 @@ def test_needle_attachment_is_two_way_and_conserves_momentum():
     ns2 = NeedleState.at_rest([0.0, 0.0, 0.0], [1.0, 0.0, 0.0, 0.0])
     held = NeedleModel.from_shape(gravity_compensation=True)
     state2 = RodState.straight(model, needle_point_world(held, ns2, held.swage_pos_body), [0.0, 0.0, -1.0])
-    step_strands(model, state2, RodWork(model), 1e-3, gravity=G, needle_model=held, needle_state=ns2)
+    step_solver(Model(needle=held, suture=model, gravity=G), state2, 1, needle_state=ns2)
     assert ns2.body_vel[2] < 0.0
 
 
@@ -342,9 +351,11 @@ def test_ground_contact_holds_the_thread_without_pulling():
     model = RodModel.from_params(SutureParams(node_count=30, length=0.03, damping=0.0))
     ground = StaticObstacles.ground(0.0)
     state = RodState.straight(model, [0.0, 0.0, 0.004], [1.0, 0.0, 0.2])  # tilted: one end lands first
-    work = RodWork(model)
+    grounded = Model(suture=model, gravity=G, obstacles=ground)
+    full = State.initial(grounded, suture=state)
     for _ in range(300):
-        step_strands(model, state, work, 1e-3, gravity=G, obstacles=ground)
+        SOLVER.step(grounded, full, Control(), 1e-3)
+        work = full.work.rod_work
         assert state.node_pos[:, 2].min() > model.radius - 1e-12
         assert work.lam[:, 6].min() >= 0.0
         assert np.abs(segment_strain(model, state)).max() < 1e-6
@@ -357,10 +368,8 @@ def test_friction_decelerates_a_sliding_thread_at_mu_g():
     ground = StaticObstacles.ground(0.0, friction=0.5)
     state = RodState.straight(model, [0.0, 0.0, model.radius], [1.0, 0.0, 0.0])
     state.node_vel[:] = [0.2, 0.0, 0.0]
-    work = RodWork(model)
     steps = 20
-    for _ in range(steps):
-        step_strands(model, state, work, 1e-3, gravity=G, obstacles=ground)
+    step_solver(Model(suture=model, gravity=G, obstacles=ground), state, steps)
     np.testing.assert_allclose(state.node_vel[:, 0], 0.2 - 0.5 * 9.81 * steps * 1e-3, rtol=1e-6)
     assert np.abs(state.node_pos[:, 2] - model.radius).max() < 1e-12
 
@@ -369,12 +378,11 @@ def test_sphere_obstacle_keeps_nodes_outside():
     model = small_rod()
     state = RodState.straight(model, [0.0, 0.0, 0.1], [1.0, 0.0, 0.0])
     ball = StaticObstacles(sphere_center=[[0.015, 0.0, 0.09]], sphere_radius=[0.006])
-    work = RodWork(model)
-    for _ in range(300):
-        step_strands(model, state, work, 1e-3, gravity=G, obstacles=ball)
+    step_solver(Model(suture=model, gravity=G, obstacles=ball), state, 300)
     dist = np.linalg.norm(state.node_pos - [0.015, 0.0, 0.09], axis=1)
     assert dist.min() > 0.006 + model.radius - 1e-10
     assert np.abs(segment_strain(model, state)).max() < 1e-9
+    work = RodWork(model)
     rod_detect_contacts(model, state, work, ball)
     assert (work.contact_gap < 1e-9).any()  # it drapes over the ball
 
@@ -383,9 +391,7 @@ def test_clamped_segment_keeps_its_frame():
     model = RodModel.from_params(SutureParams(node_count=10, length=0.01), pinned_nodes=[0], clamped_segments=[0])
     state = RodState.straight(model, [0.0, 0.0, 0.0], [1.0, 0.0, 0.0])
     q0 = state.seg_quat[0].copy()
-    work = RodWork(model)
-    for _ in range(50):
-        step_strands(model, state, work, 1e-3, gravity=G)
+    step_solver(Model(suture=model, gravity=G), state, 50)
     np.testing.assert_array_equal(state.seg_quat[0], q0)
     assert state.node_pos[-1, 2] < 0.0  # it sags beyond the clamp
 
@@ -396,12 +402,11 @@ def test_deterministic():
         needle = NeedleModel.from_shape()
         ns = NeedleState.at_rest([0.0, 0.0, 0.05], [1.0, 0.0, 0.0, 0.0])
         state = RodState.straight(model, needle_point_world(needle, ns, needle.swage_pos_body), [0.3, 0.0, -1.0])
-        work = RodWork(model)
-        ground = StaticObstacles.ground(0.04)
+        full_model = Model(needle=needle, suture=model, gravity=G, obstacles=StaticObstacles.ground(0.04))
+        full = State.initial(full_model, needle=ns, suture=state)
         for k in range(150):
             wrench = np.array([0.01 * np.sin(0.1 * k), 0.0, 0.0, 0.0, 0.0, 0.0])
-            step_strands(model, state, work, 1e-3, gravity=G, needle_model=needle, needle_state=ns,
-                         needle_wrench=wrench, obstacles=ground)  # fmt: skip
+            SOLVER.step(full_model, full, Control(needle_wrench=wrench), 1e-3)
         return state, ns
 
     (a, na), (b, nb) = run(), run()
@@ -413,9 +418,7 @@ def test_deterministic():
 def test_quaternions_stay_unit():
     model = small_rod()
     state = RodState.straight(model, [0.0, 0.0, 0.1], [1.0, 0.0, 0.0])
-    work = RodWork(model)
-    for _ in range(200):
-        step_strands(model, state, work, 1e-3, gravity=G)
+    step_solver(Model(suture=model, gravity=G), state, 200)
     np.testing.assert_allclose(np.linalg.norm(state.seg_quat, axis=1), 1.0, atol=1e-14)
 
 
@@ -455,15 +458,14 @@ def test_bad_material_raises_naming_the_field(kwargs, field):
 def test_bad_solver_input_raises():
     model = small_rod()
     state = RodState.straight(model, [0.0, 0.0, 0.0], [1.0, 0.0, 0.0])
-    work = RodWork(model)
-    with pytest.raises(ValueError, match="iterations"):
-        rod_project(model, state, work, 1e-3, iterations=0)
-    with pytest.raises(ValueError, match="tolerance"):
-        rod_project(model, state, work, 1e-3, tolerance=-1.0)
-    with pytest.raises(ValueError, match="node_force"):
-        step_strands(model, state, work, 1e-3, node_force=np.full((model.node_count, 3), np.nan))
+    with pytest.raises(ValueError, match="suture_force"):
+        Control(suture_force=np.full((model.node_count, 3), np.nan))
+    with pytest.raises(ValueError, match="suture_force"):
+        step_solver(Model(suture=model), state, 1, suture_force=np.zeros((model.node_count + 1, 3)))
     with pytest.raises(ValueError, match="dt"):
-        step_strands(model, state, work, 0.0)
+        rod_predict(model, state, 0.0, G)
+    with pytest.raises(ValueError, match="need Model.suture"):
+        Model(obstacles=StaticObstacles.ground(0.0))
     with pytest.raises(ValueError, match="pinned_nodes"):
         model.with_pins(pinned_nodes=[model.node_count])
     with pytest.raises(ValueError, match="direction"):

@@ -64,7 +64,7 @@ def test_thread_follows_through_both_bites(stitched):
     suture_paths = state.strand_path[nn:][state.strand_status[nn:] == NODE_IN]
     assert set(suture_paths.tolist()) == {0, 1}  # thread, not needle, lies in both paths at the end
     assert np.all(state.strand_path[:nn] == -1)  # the needle is out
-    work = scene.model.scratch.coupling_work
+    work = scene.state.work.coupling_work
     assert np.count_nonzero(work.row_kind[nn:] == ROW_PATH) >= 10
 
 

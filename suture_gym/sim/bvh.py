@@ -58,6 +58,15 @@ class BVH:
     sorted_element: np.ndarray
     depth: int
 
+    @property
+    def tree(self) -> tuple:
+        """The arrays the traversal kernels take, as one argument: ``(node_lo, node_hi, node_child, node_first,
+        node_count, sorted_element, element_vertices)`` (the same arrays, not copies)."""
+        return (
+            self.node_lo, self.node_hi, self.node_child, self.node_first, self.node_count, self.sorted_element,
+            self.element_vertices,
+        )  # fmt: skip
+
 
 @njit(cache=True)
 def aabb_overlap(lo_a, hi_a, lo_b, hi_b, margin):

@@ -6,7 +6,9 @@ what the agent commands during one step.
 
 The needle, suture and coupling slots hold the objects of :mod:`suture_gym.sim.needle`,
 :mod:`suture_gym.sim.rod` and :mod:`suture_gym.sim.coupling`. Every quantity that influences a later substep
-lives in the State, so :meth:`State.snapshot` / :meth:`State.restore` replay bit for bit.
+lives in the State, so :meth:`State.snapshot` / :meth:`State.restore` replay bit for bit. The solver's
+per-substep buffers (:class:`Work`, BVHs included) hang off the State they serve and carry nothing between
+substeps.
 """
 
 from __future__ import annotations
@@ -20,7 +22,7 @@ from suture_gym.sim.coloring import color_constraints
 from suture_gym.sim.coupling import CouplingModel, CouplingState, CouplingWork
 from suture_gym.sim.mesh import TetMesh, lumped_masses, rest_shape, surface_triangles
 from suture_gym.sim.needle import NeedleModel, NeedleState
-from suture_gym.sim.rod import RodModel, RodState, RodWork
+from suture_gym.sim.rod import RodModel, RodState, RodWork, StaticObstacles
 
 
 @dataclass(frozen=True)
@@ -360,25 +362,6 @@ class TissueState:
             mine[...] = theirs
 
 
-class Scratch:
-    """Buffers the solver reuses every substep for one model (allocated once, by :class:`Model`).
-
-    They carry no information from one substep to the next: the detection rebuilds the coupling rows and the
-    solver loads the rod's warm start from the State before each projection. One model must therefore not be
-    stepped from two threads at once.
-
-    Attributes:
-        rod_work: :class:`~suture_gym.sim.rod.RodWork` of the suture, or None.
-        coupling_work: :class:`~suture_gym.sim.coupling.CouplingWork`, or None.
-        strand_q: ``(M, 3) float64`` strand node positions at detection, m (empty without coupling).
-    """
-
-    def __init__(self, suture: RodModel | None, coupling: CouplingModel | None):
-        self.rod_work = None if suture is None else RodWork(suture)
-        self.coupling_work = None if coupling is None else CouplingWork(coupling)
-        self.strand_q = np.zeros((0 if coupling is None else coupling.strand_node_count, 3))
-
-
 @dataclass(frozen=True)
 class Model:
     """Everything static about a scene.
@@ -391,7 +374,8 @@ class Model:
         coupling: the :class:`~suture_gym.sim.coupling.CouplingModel` of needle + suture with the tissue, or
             None (needs tissue and needle, built for exactly this needle and suture).
         gravity: ``(3,) float64`` gravitational acceleration, m/s^2 (read-only).
-        scratch: :class:`Scratch` buffers of the solver (not a dataclass field; carries no state).
+        obstacles: :class:`~suture_gym.sim.rod.StaticObstacles` (planes, spheres) the suture cannot enter, with
+            Coulomb friction, or None; needs a suture.
     """
 
     tissue: TissueModel | None = None
@@ -399,6 +383,7 @@ class Model:
     suture: RodModel | None = None
     coupling: CouplingModel | None = None
     gravity: np.ndarray = field(default_factory=lambda: np.array([0.0, 0.0, -9.81]))
+    obstacles: StaticObstacles | None = None
 
     def __post_init__(self) -> None:
         for name, kind in (
@@ -406,6 +391,7 @@ class Model:
             ("needle", NeedleModel),
             ("suture", RodModel),
             ("coupling", CouplingModel),
+            ("obstacles", StaticObstacles),
         ):
             value = getattr(self, name)
             if value is not None and not isinstance(value, kind):
@@ -419,12 +405,34 @@ class Model:
                     f"Model.coupling was built for a strand of {self.coupling.strand_node_count} nodes, but needle "
                     f"and suture make {expected}"
                 )
+        if self.obstacles is not None and self.suture is None:
+            raise ValueError("Model.obstacles act on the suture: they need Model.suture")
         gravity = np.array(self.gravity, dtype=np.float64, copy=True)
         if gravity.shape != (3,) or not np.all(np.isfinite(gravity)):
             raise ValueError(f"Model.gravity must be three finite components in m/s^2, got {self.gravity!r}")
         gravity.flags.writeable = False
         object.__setattr__(self, "gravity", gravity)
-        object.__setattr__(self, "scratch", Scratch(self.suture, self.coupling))
+
+
+class Work:
+    """Buffers the solver reuses every substep for one model and one state (see :attr:`State.work`).
+
+    They carry no information from one substep to the next: the detection refits the BVHs and rebuilds the
+    coupling rows, and the solver loads the rod's warm start from the State before each projection.
+
+    Attributes:
+        model: the :class:`Model` the buffers were sized for (compared by identity).
+        rod_work: :class:`~suture_gym.sim.rod.RodWork` of the suture, or None.
+        coupling_work: :class:`~suture_gym.sim.coupling.CouplingWork` (rows, refitted BVHs), or None.
+        rod_solves: direct solves of the suture in the last substep's last sweep (iterations whose residual
+            was above the solver's ``rod_tolerance``), a convergence reading.
+    """
+
+    def __init__(self, model: Model):
+        self.model = model
+        self.rod_work = None if model.suture is None else RodWork(model.suture)
+        self.coupling_work = None if model.coupling is None else CouplingWork(model.coupling)
+        self.rod_solves = 0
 
 
 @dataclass
@@ -444,6 +452,9 @@ class State:
         time: simulated time, s.
         diverged: set by the solver when positions become non-finite or speeds absurd; the solver leaves a
             diverged state untouched from then on.
+        work: the solver's :class:`Work` buffers for this state, made by the first step (None before). They
+            carry no state, so :meth:`snapshot` leaves them out and :meth:`restore` keeps this state's own: no
+            two states share buffers.
     """
 
     tissue: TissueState | None = None
@@ -454,6 +465,7 @@ class State:
     needle_reaction: np.ndarray | None = None
     time: float = 0.0
     diverged: bool = False
+    work: Work | None = field(default=None, repr=False, compare=False)
 
     @classmethod
     def initial(cls, model: Model, needle: NeedleState | None = None, suture: RodState | None = None) -> State:
@@ -474,7 +486,7 @@ class State:
         )
 
     def snapshot(self) -> State:
-        """Deep copy of the whole state (restore it with :meth:`restore`)."""
+        """Deep copy of the whole state (restore it with :meth:`restore`), without the solver's :attr:`work`."""
         return State(
             tissue=None if self.tissue is None else self.tissue.copy(),
             needle=None if self.needle is None else self.needle.copy(),
@@ -490,7 +502,7 @@ class State:
         """Make this state equal to ``snapshot`` (deep copies; the snapshot stays reusable).
 
         The tissue arrays are overwritten in place, so references to them stay valid; the other parts are
-        replaced by copies of the snapshot's.
+        replaced by copies of the snapshot's. This state keeps its own :attr:`work`.
         """
         if (self.tissue is None) != (snapshot.tissue is None):
             raise ValueError("snapshot and state disagree on whether there is tissue")
@@ -513,9 +525,12 @@ class Control:
     Attributes:
         needle_wrench: ``(6,) float64`` force (N, world frame) then torque (N m, world frame) applied to the
             needle holder's grip point.
+        suture_force: ``(S, 3) float64`` external force on each suture node, N (world frame), or None for none;
+            its row count must match the model's suture.
     """
 
     needle_wrench: np.ndarray = field(default_factory=lambda: np.zeros(6))
+    suture_force: np.ndarray | None = None
 
     def __post_init__(self) -> None:
         wrench = np.array(self.needle_wrench, dtype=np.float64, copy=True)
@@ -524,3 +539,8 @@ class Control:
         if not np.all(np.isfinite(wrench)):
             raise ValueError(f"Control.needle_wrench must be finite, got {wrench.tolist()}")
         self.needle_wrench = wrench
+        if self.suture_force is not None:
+            force = np.array(self.suture_force, dtype=np.float64, copy=True)
+            if force.ndim != 2 or force.shape[1] != 3 or not np.all(np.isfinite(force)):
+                raise ValueError(f"Control.suture_force must be a finite (S, 3) array in N, got shape {force.shape}")
+            self.suture_force = force

@@ -31,44 +31,28 @@ import numbers
 from dataclasses import dataclass, field
 
 import numpy as np
-from numba import njit
 
+from suture_gym.sim.checks import finite_array, is_real, require_non_negative, require_positive
 from suture_gym.sim.quat import (
     quat_conj,
-    quat_from_rotation_vector,
     quat_mul,
     quat_normalize,
     quat_rotate,
-    quat_rotate_inv,
     quat_rotation_vector,
     quat_to_matrix,
+)
+from suture_gym.sim.rigid import (
+    apply_point_impulse,
+    body_points_world,
+    point_inv_mass,
+    point_inv_mass_matrix,
+    rigid_predict,
+    rigid_velocities,
+    world_inv_inertia,
 )
 
 #: Named arc presets: fraction of a full circle the needle spans.
 ARC_PRESETS: dict[str, float] = {"1/4": 0.5 * math.pi, "3/8": 0.75 * math.pi, "1/2": math.pi, "5/8": 1.25 * math.pi}
-
-
-def _is_real(value) -> bool:
-    return isinstance(value, numbers.Real) and not isinstance(value, bool)
-
-
-def _require_positive(name: str, value: float) -> None:
-    if not (_is_real(value) and math.isfinite(value) and value > 0.0):
-        raise ValueError(f"{name} must be a finite number > 0, got {value!r}")
-
-
-def _require_non_negative(name: str, value: float) -> None:
-    if not (_is_real(value) and math.isfinite(value) and value >= 0.0):
-        raise ValueError(f"{name} must be a finite number >= 0, got {value!r}")
-
-
-def _finite_vector(name: str, value, size: int) -> np.ndarray:
-    arr = np.asarray(value, dtype=np.float64)
-    if arr.shape != (size,):
-        raise ValueError(f"{name} must have shape ({size},), got {arr.shape}")
-    if not np.all(np.isfinite(arr)):
-        raise ValueError(f"{name} must be finite, got {arr.tolist()}")
-    return arr
 
 
 @dataclass(frozen=True)
@@ -102,18 +86,18 @@ class NeedleShape:
         if isinstance(self.arc, str):
             if self.arc not in ARC_PRESETS:
                 raise ValueError(f"arc preset {self.arc!r} unknown; expected one of {sorted(ARC_PRESETS)} or radians")
-        elif not (_is_real(self.arc) and math.isfinite(self.arc) and 0.0 < self.arc <= 2.0 * math.pi):
+        elif not (is_real(self.arc) and math.isfinite(self.arc) and 0.0 < self.arc <= 2.0 * math.pi):
             raise ValueError(f"arc must be a preset name or an angle in (0, 2 pi] rad, got {self.arc!r}")
-        _require_positive("curvature_radius", self.curvature_radius)
-        _require_positive("wire_radius", self.wire_radius)
+        require_positive("curvature_radius", self.curvature_radius)
+        require_positive("wire_radius", self.wire_radius)
         if self.wire_radius >= self.curvature_radius:
             raise ValueError(
                 f"wire_radius ({self.wire_radius}) must be smaller than curvature_radius ({self.curvature_radius})"
             )
-        _require_positive("density", self.density)
-        _require_non_negative("holder_mass", self.holder_mass)
-        _require_non_negative("holder_inertia", self.holder_inertia)
-        if not (_is_real(self.grip_fraction) and 0.0 <= self.grip_fraction <= 1.0):
+        require_positive("density", self.density)
+        require_non_negative("holder_mass", self.holder_mass)
+        require_non_negative("holder_inertia", self.holder_inertia)
+        if not (is_real(self.grip_fraction) and 0.0 <= self.grip_fraction <= 1.0):
             raise ValueError(f"grip_fraction must be in [0, 1], got {self.grip_fraction!r}")
         if isinstance(self.node_count, bool) or not isinstance(self.node_count, numbers.Integral):
             raise ValueError(f"node_count must be an integer >= 2, got {self.node_count!r}")
@@ -237,8 +221,8 @@ class NeedleModel:
     ) -> NeedleModel:
         """Compute mass, centre of mass, inertia and nodes of ``shape`` (default :class:`NeedleShape`)."""
         shape = NeedleShape() if shape is None else shape
-        _require_non_negative("linear_damping", linear_damping)
-        _require_non_negative("angular_damping", angular_damping)
+        require_non_negative("linear_damping", linear_damping)
+        require_non_negative("angular_damping", angular_damping)
         R = shape.curvature_radius
         wire_mass, wire_com, wire_inertia = arc_wire_mass_properties(
             R, shape.wire_radius, shape.tip_angle, shape.swage_angle, shape.density
@@ -306,8 +290,8 @@ class NeedleState:
     @classmethod
     def at_rest(cls, body_pos, body_quat) -> NeedleState:
         """A needle at rest with its centre of mass at ``body_pos`` (3,) m and orientation ``body_quat`` (4,)."""
-        pos = _finite_vector("body_pos", body_pos, 3).copy()
-        quat = _finite_vector("body_quat", body_quat, 4)
+        pos = finite_array("body_pos", body_pos, (3,)).copy()
+        quat = finite_array("body_quat", body_quat, (4,))
         if np.linalg.norm(quat) == 0.0:
             raise ValueError("body_quat must be non-zero")
         quat = quat_normalize(quat)
@@ -316,119 +300,13 @@ class NeedleState:
     @classmethod
     def from_grip_pose(cls, model: NeedleModel, grip_pos, body_quat) -> NeedleState:
         """A needle at rest whose grip point is at ``grip_pos`` (3,) m with orientation ``body_quat`` (4,)."""
-        grip = _finite_vector("grip_pos", grip_pos, 3)
-        quat = quat_normalize(_finite_vector("body_quat", body_quat, 4))
+        grip = finite_array("grip_pos", grip_pos, (3,))
+        quat = quat_normalize(finite_array("body_quat", body_quat, (4,)))
         return cls.at_rest(grip - quat_rotate(quat, model.grip_pos_body), quat)
 
     def copy(self) -> NeedleState:
         """Deep copy (no array is shared)."""
         return NeedleState(*(np.array(getattr(self, f)) for f in self.__dataclass_fields__))
-
-
-# ---------------------------------------------------------------------------------------------------------
-# Kernels
-# ---------------------------------------------------------------------------------------------------------
-
-
-@njit(cache=True)
-def world_inv_inertia(quat, inv_inertia_body):
-    """World-frame inverse inertia ``R I_body^-1 R^T`` (3, 3) of a body with orientation ``quat`` (4,)."""
-    r = quat_to_matrix(quat)
-    return r @ inv_inertia_body @ r.T
-
-
-@njit(cache=True)
-def point_inv_mass(inv_mass, inv_inertia_world, r, n):
-    """Generalised inverse mass (1/kg) of a body point for a correction along unit direction ``n`` (3,).
-
-    ``w = 1/m + (r x n)^T I^-1 (r x n)`` with ``r`` (3,) the point relative to the centre of mass (world, m)
-    and ``I^-1`` the world inverse inertia (3, 3) (Muller et al. 2020).
-    """
-    rn = np.cross(r, n)
-    return inv_mass + rn @ (inv_inertia_world @ rn)
-
-
-@njit(cache=True)
-def point_inv_mass_matrix(inv_mass, inv_inertia_world, r):
-    """Generalised inverse mass matrix (3, 3) (1/kg) of a body point: ``K = I/m - [r]x I^-1 [r]x``.
-
-    ``n^T K n`` equals :func:`point_inv_mass` for any unit ``n``; a point impulse ``p`` moves the point by
-    ``K p`` to first order.
-    """
-    s = np.zeros((3, 3))
-    s[0, 1] = -r[2]
-    s[0, 2] = r[1]
-    s[1, 0] = r[2]
-    s[1, 2] = -r[0]
-    s[2, 0] = -r[1]
-    s[2, 1] = r[0]
-    k = -(s @ inv_inertia_world @ s)
-    for i in range(3):
-        k[i, i] += inv_mass
-    return k
-
-
-@njit(cache=True)
-def apply_point_impulse(pos, quat, inv_mass, inv_inertia_world, r, p):
-    """Rigid XPBD pose update for a positional impulse ``p`` (3,) (kg m) at body point ``r`` (3,) (world, m).
-
-    ``x += p / m`` and the orientation turns by ``I^-1 (r x p)`` (rad), applied with the exact exponential
-    map (Muller et al. 2020 linearise this quaternion update) and renormalised. Returns ``(pos (3,), quat (4,))``.
-    """
-    new_pos = pos + inv_mass * p
-    dtheta = inv_inertia_world @ np.cross(r, p)
-    new_quat = quat_normalize(quat_mul(quat_from_rotation_vector(dtheta), quat))
-    return new_pos, new_quat
-
-
-@njit(cache=True)
-def rigid_predict(
-    pos, quat, vel, omega, inv_mass, inertia_body, inv_inertia_body, force, torque, accel, lin_damp, ang_damp, dt
-):
-    """Semi-implicit Newton-Euler step of a rigid body (prediction step of Muller et al. 2020).
-
-    Inputs: pose ``pos`` (3,) m, ``quat`` (4,); velocities ``vel`` (3,) m/s, ``omega`` (3,) rad/s (world);
-    ``inv_mass`` 1/kg; body-frame ``inertia_body`` and ``inv_inertia_body`` (3, 3); world ``force`` (3,) N
-    and ``torque`` (3,) N m about the centre of mass; uniform field ``accel`` (3,) m/s^2 (gravity);
-    damping rates ``lin_damp``, ``ang_damp`` 1/s; ``dt`` s.
-
-    ``v <- v / (1 + dt c) + dt (F/m + g)``, ``x <- x + dt v``; in the body frame
-    ``w <- w / (1 + dt c_w) + dt I^-1 (tau - w x I w)`` (gyroscopic term explicit), ``q <- exp(dt w / 2) q``.
-    Damping acts on the old velocities only, so it never scales the applied loads.
-    Returns ``(pos, quat, vel, omega)``.
-    """
-    new_vel = vel / (1.0 + dt * lin_damp) + dt * (inv_mass * force + accel)
-    new_pos = pos + dt * new_vel
-    w_b = quat_rotate_inv(quat, omega)
-    tau_b = quat_rotate_inv(quat, torque)
-    gyro = np.cross(w_b, inertia_body @ w_b)
-    w_b = w_b / (1.0 + dt * ang_damp) + dt * (inv_inertia_body @ (tau_b - gyro))
-    new_omega = quat_rotate(quat, w_b)
-    new_quat = quat_normalize(quat_mul(quat_from_rotation_vector(dt * new_omega), quat))
-    return new_pos, new_quat, new_vel, new_omega
-
-
-@njit(cache=True)
-def rigid_velocities(pos, quat, pos_prev, quat_prev, dt):
-    """Velocities from the substep's pose change: ``v = dx/dt``, ``omega = log(q conj(q_prev)) / dt``.
-
-    Returns ``(vel (3,) m/s, omega (3,) rad/s world)``.
-    """
-    vel = (pos - pos_prev) / dt
-    omega = quat_rotation_vector(quat_mul(quat, quat_conj(quat_prev))) / dt
-    return vel, omega
-
-
-@njit(cache=True)
-def body_points_world(pos, quat, points_body, out):
-    """World positions of body-frame points ``points_body`` (K, 3) for pose (``pos`` (3,), ``quat`` (4,)).
-
-    Writes ``out`` (K, 3) m.
-    """
-    r = quat_to_matrix(quat)
-    for k in range(points_body.shape[0]):
-        for i in range(3):
-            out[k, i] = pos[i] + r[i, 0] * points_body[k, 0] + r[i, 1] * points_body[k, 1] + r[i, 2] * points_body[k, 2]
 
 
 # ---------------------------------------------------------------------------------------------------------
@@ -467,8 +345,8 @@ def needle_predict(model: NeedleModel, state: NeedleState, wrench, dt: float, gr
     ``gravity`` (3,) m/s^2 acts unless ``model.gravity_compensation``. Updates ``state`` in place and records
     the predicted pose in ``body_pos_pred`` / ``body_quat_pred`` (used by :func:`needle_constraint_wrench`).
     """
-    _require_positive("dt", dt)
-    g = _finite_vector("gravity", gravity, 3)
+    require_positive("dt", dt)
+    g = finite_array("gravity", gravity, (3,))
     force, torque = wrench_at_com(model, state, wrench)
     accel = np.zeros(3) if model.gravity_compensation else g
     state.body_pos_prev[:] = state.body_pos
@@ -538,11 +416,11 @@ def needle_point_velocity(model: NeedleModel, state: NeedleState, point_body) ->
 
 def needle_point_inv_mass(model: NeedleModel, state: NeedleState, point_world, direction) -> float:
     """Generalised inverse mass (1/kg) of world point ``point_world`` (3,) on the needle along ``direction``."""
-    n = _finite_vector("direction", direction, 3)
+    n = finite_array("direction", direction, (3,))
     norm = np.linalg.norm(n)
     if norm == 0.0:
         raise ValueError("direction must be non-zero")
-    r = _finite_vector("point_world", point_world, 3) - state.body_pos
+    r = finite_array("point_world", point_world, (3,)) - state.body_pos
     return float(
         point_inv_mass(model.body_inv_mass, world_inv_inertia(state.body_quat, model.body_inv_inertia), r, n / norm)
     )
@@ -554,8 +432,8 @@ def needle_apply_impulse(model: NeedleModel, state: NeedleState, point_world, im
     This is how contact and path constraints on needle nodes act on the rigid body: a constraint with
     gradient ``n`` at the node and multiplier step ``dlambda`` passes ``impulse = dlambda n``.
     """
-    p = _finite_vector("impulse", impulse, 3)
-    r = _finite_vector("point_world", point_world, 3) - state.body_pos
+    p = finite_array("impulse", impulse, (3,))
+    r = finite_array("point_world", point_world, (3,)) - state.body_pos
     pos, quat = apply_point_impulse(
         state.body_pos,
         state.body_quat,
@@ -575,10 +453,10 @@ def needle_move_point(model: NeedleModel, state: NeedleState, point_world, displ
     point's generalised inverse mass matrix (:func:`point_inv_mass_matrix`), so the point moves by
     ``displacement`` up to second order in the rotation. A zero displacement does nothing.
     """
-    dx = _finite_vector("displacement", displacement, 3)
+    dx = finite_array("displacement", displacement, (3,))
     if not np.any(dx):
         return
-    point = _finite_vector("point_world", point_world, 3)
+    point = finite_array("point_world", point_world, (3,))
     k = point_inv_mass_matrix(
         model.body_inv_mass, world_inv_inertia(state.body_quat, model.body_inv_inertia), point - state.body_pos
     )
@@ -606,7 +484,7 @@ class VirtualCoupling:
 
     def __post_init__(self) -> None:
         for name in ("linear_stiffness", "linear_damping", "angular_stiffness", "angular_damping"):
-            _require_non_negative(name, getattr(self, name))
+            require_non_negative(name, getattr(self, name))
 
     def wrench(
         self,
@@ -622,10 +500,10 @@ class VirtualCoupling:
         ``target_pos`` (3,) m is where the grip point should be, ``target_quat`` (4,) the body orientation,
         ``target_vel`` (3,) m/s and ``target_omega`` (3,) rad/s the target's velocities.
         """
-        xt = _finite_vector("target_pos", target_pos, 3)
-        qt = _finite_vector("target_quat", target_quat, 4)
-        vt = _finite_vector("target_vel", target_vel, 3)
-        wt = _finite_vector("target_omega", target_omega, 3)
+        xt = finite_array("target_pos", target_pos, (3,))
+        qt = finite_array("target_quat", target_quat, (4,))
+        vt = finite_array("target_vel", target_vel, (3,))
+        wt = finite_array("target_omega", target_omega, (3,))
         grip = needle_point_world(model, state, model.grip_pos_body)
         v_grip = needle_point_velocity(model, state, model.grip_pos_body)
         force = self.linear_stiffness * (xt - grip) + self.linear_damping * (vt - v_grip)

@@ -6,8 +6,9 @@
    ``v <- v exp(-c dt) + g dt`` (mass-proportional damping ``c`` of their material, then gravity;
    semi-implicit Euler), ``x <- x + v dt``; pinned particles keep ``v = 0``; tet multipliers reset. The needle:
    Newton-Euler under the action wrench ``Control.needle_wrench`` at its grip point and gravity
-   (:func:`~suture_gym.sim.needle.needle_predict`). The suture nodes under gravity
-   (:func:`~suture_gym.sim.rod.rod_predict`). A non-finite prediction flags divergence and ends the substep.
+   (:func:`~suture_gym.sim.needle.needle_predict`). The suture nodes under gravity and
+   ``Control.suture_force`` (:func:`~suture_gym.sim.rod.rod_predict`). A non-finite prediction flags
+   divergence and ends the substep.
 2. **Detect** (:func:`~suture_gym.sim.coupling.coupling_detect`): strand node positions at the start of
    the substep and predicted, broad phase, signed distances, node states, the tip's anchor, puncture, path
    growth, exit, release and the coupling constraint rows with their contact frames (paper section 4), from
@@ -20,10 +21,13 @@
    the needle's node-triangle and node-path rows with axial friction (rigid body, generalised inverse mass),
    the suture's node-path rows and the node-access rows, all two-way with the tissue
    (:mod:`suture_gym.sim.coupling`); last the suture's direct solve (inextensibility, bending, two-way swage
-   attachment, and its node-triangle contacts with the tissue as one-sided rows; up to ``rod_iterations``
-   iterations, see :meth:`Solver._project_suture`), so a substep ends with the thread at its rest length.
+   attachment, its contacts with the static obstacles ``Model.obstacles`` and its node-triangle contacts with
+   the tissue as one-sided rows; up to ``rod_iterations`` iterations, see :meth:`Solver._project_suture`), so a
+   substep ends with the thread at its rest length.
 4. **Velocities** (:meth:`Solver._update_velocities`): ``v = (x - x_prev) / dt`` for tissue particles and
-   suture nodes, the needle's linear and angular velocity from its pose change; a non-finite value or a speed
+   suture nodes (then the obstacles' Coulomb friction on the suture nodes their contacts pushed,
+   :func:`~suture_gym.sim.rod.friction_kernel`), the needle's linear and angular velocity from its pose
+   change; a non-finite value or a speed
    above ``max_speed`` sets ``state.diverged``. Then the readings: the coupling forces (tip force for the
    next puncture test, friction, largest force, damage flag), the suture tensions (the rod's warm start for
    the next substep, kept in the State so that snapshots replay bit for bit) and the constraint wrench on the
@@ -84,10 +88,10 @@ from suture_gym.sim.coupling import (
     strand_positions_kernel,
     suture_contact_rows,
 )
-from suture_gym.sim.model import Control, Model, State
+from suture_gym.sim.model import Control, Model, State, Work
 from suture_gym.sim.needle import needle_constraint_wrench, needle_predict, needle_update_velocities
 from suture_gym.sim.quat import quat_to_matrix
-from suture_gym.sim.rod import rod_iteration_kernel, rod_predict
+from suture_gym.sim.rod import friction_kernel, rod_detect_contacts, rod_predict, rod_solve_iteration
 from suture_gym.sim.tissue import project_rollers, project_tets, tet_residual
 
 #: Phases timed by :meth:`Solver.step` when given a ``timings`` dict (seconds accumulated per phase).
@@ -173,7 +177,8 @@ def _all_finite(a):
 
 @dataclass(frozen=True)
 class Solver:
-    """XPBD substep integrator. Holds hyperparameters only; all data lives in Model and State.
+    """XPBD substep integrator. Holds hyperparameters only; all data lives in Model and State (its per-substep
+    buffers in ``State.work``, made on a state's first step).
 
     Attributes:
         iterations: Gauss-Seidel sweeps per substep (>= 1). One sweep per substep with small substeps is
@@ -231,6 +236,8 @@ class Solver:
         dt = self._check_inputs(model, state, control, dt, residuals)
         if state.diverged:
             return
+        if state.work is None or state.work.model is not model:
+            state.work = Work(model)
         clock = _Clock(timings)
         self._predict(model, state, control, dt)
         clock.lap("predict")
@@ -292,6 +299,10 @@ class Solver:
                 or state.suture_tension.shape != (s - 1,)
             ):
                 raise ValueError(f"state.suture and state.suture_tension must match the model's {s} suture nodes")
+        if control.suture_force is not None and (
+            model.suture is None or control.suture_force.shape != (model.suture.node_count, 3)
+        ):
+            raise ValueError("control.suture_force must be an (S, 3) array for the model's S suture nodes")
         if model.needle is not None and (state.needle_reaction is None or state.needle_reaction.shape != (6,)):
             raise ValueError("state.needle_reaction must be a (6,) array when the model has a needle")
         if residuals is not None and (residuals.shape != (self.iterations,) or residuals.dtype != np.float64):
@@ -315,7 +326,7 @@ class Solver:
         if model.needle is not None:
             needle_predict(model.needle, state.needle, control.needle_wrench, dt, model.gravity)
         if model.suture is not None:
-            rod_predict(model.suture, state.suture, dt, model.gravity)
+            rod_predict(model.suture, state.suture, dt, model.gravity, control.suture_force)
 
     @staticmethod
     def _finite(state: State) -> bool:
@@ -334,52 +345,31 @@ class Solver:
         coupling = model.coupling
         if coupling is None:
             return
-        scratch = model.scratch
-        work = scratch.coupling_work
+        work = state.work.coupling_work
         suture_q = state.suture.node_pos if state.suture is not None else np.zeros((0, 3))
+        suture_q_prev = state.suture.node_pos_prev if state.suture is not None else np.zeros((0, 3))
         strand_positions_kernel(
-            state.needle.body_pos, state.needle.body_quat, model.needle.node_pos_body, suture_q, scratch.strand_q
+            state.needle.body_pos, state.needle.body_quat, model.needle.node_pos_body, suture_q, work.strand_q
         )
         strand_positions_kernel(
             state.needle.body_pos_prev, state.needle.body_quat_prev, model.needle.node_pos_body,
-            state.suture.node_pos_prev if state.suture is not None else np.zeros((0, 3)), work.strand_q_start,
+            suture_q_prev, work.strand_q_start,
         )  # fmt: skip
         coupling_detect(
-            coupling, state.coupling, work, model.tissue, state.tissue.particle_q, scratch.strand_q,
-            work.strand_q_start,
+            coupling, state.coupling, work, model.tissue, state.tissue.particle_q, work.strand_q, work.strand_q_start,
         )  # fmt: skip
         contact_floors(
-            coupling.needle_node_count,
-            coupling.params.resistance_eps,
-            coupling.params.depenetration_speed * dt,
-            work.row_kind,
-            work.row_tri,
-            work.row_bary,
-            work.row_contact_normal,
-            coupling.surface.tri_vertices,
-            state.needle.body_pos_prev,
-            state.needle.body_quat_prev,
-            model.needle.node_pos_body,
-            state.suture.node_pos_prev if state.suture is not None else np.zeros((0, 3)),
+            coupling.needle_node_count, coupling.params.resistance_eps, coupling.params.depenetration_speed * dt,
+            work.contact_rows, coupling.surface.tri_vertices,
+            (state.needle.body_pos_prev, state.needle.body_quat_prev, model.needle.node_pos_body), suture_q_prev,
             state.tissue.particle_q_prev,
-            work.row_floor,
-        )
+        )  # fmt: skip
         if model.suture is not None:
             embedded_inv_mass(
-                coupling.needle_node_count,
-                work.row_kind,
-                work.row_tissue,
-                work.row_weight,
-                work.access_count,
-                work.access_node,
-                work.access_weight,
-                work.access_tri,
-                work.access_bary,
-                coupling.surface.tri_vertices,
-                model.tissue.particle_inv_mass,
-                model.suture.node_inv_mass,
+                coupling.needle_node_count, work.node_rows, work.access_rows, work.access_count,
+                coupling.surface.tri_vertices, model.tissue.particle_inv_mass, model.suture.node_inv_mass,
                 work.suture_inv_mass,
-            )
+            )  # fmt: skip
 
     def _project(self, model: Model, state: State, dt: float) -> None:
         """Phase 3, one sweep over every constraint group."""
@@ -412,42 +402,19 @@ class Solver:
     @staticmethod
     def _project_coupling(model: Model, state: State, dt: float) -> None:
         """The Gauss-Seidel coupling rows of needle and suture with the tissue."""
-        coupling, work = model.coupling, model.scratch.coupling_work
+        coupling, work = model.coupling, state.work.coupling_work
         needle, needle_state = model.needle, state.needle
         tissue_inv_mass = model.tissue.particle_inv_mass
         tissue_q = state.tissue.particle_q
         tri_vertices = coupling.surface.tri_vertices
         eps = coupling.params.resistance_eps
         project_needle_rows(
-            coupling.needle_node_count,
-            needle.body_inv_mass,
-            needle.body_inv_inertia,
-            needle.node_pos_body,
-            needle_state.body_pos_prev,
-            needle_state.body_quat_prev,
-            tissue_inv_mass,
-            state.tissue.particle_q_prev,
-            tri_vertices,
-            coupling.strand_friction,
-            eps,
-            dt,
-            coupling.params.tip_friction,
-            coupling.params.tear_force,
-            work.row_kind,
-            work.row_tri,
-            work.row_bary,
-            work.row_contact_normal,
-            work.row_floor,
-            work.row_tissue,
-            work.row_weight,
-            work.row_tangent,
-            work.row_lambda,
-            work.row_friction_lambda,
-            work.tip_friction,
-            needle_state.body_pos,
-            needle_state.body_quat,
-            tissue_q,
-        )
+            (coupling.needle_node_count, needle.body_inv_mass, needle.body_inv_inertia, needle.node_pos_body,
+             needle_state.body_pos_prev, needle_state.body_quat_prev),
+            (tissue_inv_mass, state.tissue.particle_q_prev, tri_vertices),
+            (coupling.strand_friction, eps, dt, coupling.params.tip_friction, coupling.params.tear_force),
+            work.needle_rows, work.tip_friction, needle_state.body_pos, needle_state.body_quat, tissue_q,
+        )  # fmt: skip
         suture_q = state.suture.node_pos if state.suture is not None else np.zeros((0, 3))
         if state.suture is not None:
             project_suture_path_rows(
@@ -464,77 +431,55 @@ class Solver:
                 tissue_q,
             )
         project_access_rows(
-            work.access_count,
-            work.access_node,
-            work.access_weight,
-            work.access_rest,
-            work.access_tri,
-            work.access_bary,
-            coupling.needle_node_count,
-            needle.body_inv_mass,
-            needle.body_inv_inertia,
-            needle.node_pos_body,
-            work.suture_inv_mass,
-            tissue_inv_mass,
-            tri_vertices,
-            coupling.params.tear_force * dt * dt,
-            work.access_lambda,
-            needle_state.body_pos,
-            needle_state.body_quat,
-            suture_q,
-            tissue_q,
-        )
+            work.access_rows, work.access_count,
+            (coupling.needle_node_count, needle.body_inv_mass, needle.body_inv_inertia, needle.node_pos_body),
+            work.suture_inv_mass, tissue_inv_mass, tri_vertices, coupling.params.tear_force * dt * dt,
+            work.access_lambda, needle_state.body_pos, needle_state.body_quat, suture_q, tissue_q,
+        )  # fmt: skip
 
     def _project_suture(self, model: Model, state: State, dt: float) -> None:
-        """The suture's direct solve (:func:`~suture_gym.sim.rod.rod_iteration_kernel`, its contact rows made
-        two-way with the tissue), warm-started from ``state.suture_tension``, up to
-        ``rod_iterations`` iterations until its residual is below ``rod_tolerance``.
+        """The suture's direct solve (:func:`~suture_gym.sim.rod.rod_solve_iteration`, its contact rows made
+        two-way with the tissue), warm-started from ``state.suture_tension``, up to ``rod_iterations``
+        iterations until its residual is below ``rod_tolerance``.
 
-        With coupling, nodes held on a path or passing an access point use their embedded inverse masses
-        (:func:`~suture_gym.sim.coupling.embedded_inv_mass`), and the suture's node-triangle rows enter the solve
-        as one-sided contact rows (:func:`~suture_gym.sim.coupling.suture_contact_rows`); after each iteration
-        the tissue takes their reaction (:func:`~suture_gym.sim.coupling.apply_contact_reaction`). The warm start
-        is loaded as the stretch multipliers that the rod's ``begin`` reads it from.
+        Before each iteration the static obstacles (``model.obstacles``) give every node its contact row
+        (:func:`~suture_gym.sim.rod.rod_detect_contacts`). With coupling, nodes held on a path or passing an
+        access point use their embedded inverse masses (:func:`~suture_gym.sim.coupling.embedded_inv_mass`),
+        and the suture's node-triangle rows enter the solve as one-sided contact rows, in place of an obstacle's
+        (:func:`~suture_gym.sim.coupling.suture_contact_rows`); after each iteration the tissue takes their
+        reaction (:func:`~suture_gym.sim.coupling.apply_contact_reaction`). The warm start is loaded as the
+        stretch multipliers that the rod's ``begin`` reads it from. The number of solves goes to
+        ``state.work.rod_solves``.
         """
-        suture, rod_state, work = model.suture, state.suture, model.scratch.rod_work
-        coupling = model.coupling
-        cwork = model.scratch.coupling_work
-        inv_mass = suture.node_inv_mass if coupling is None else cwork.suture_inv_mass
-        contact_w = work.contact_obstacle_w if coupling is None else cwork.suture_contact_w
+        suture, rod_state, work = model.suture, state.suture, state.work.rod_work
+        coupling, cwork = model.coupling, state.work.coupling_work
+        inv_mass = None if coupling is None else cwork.suture_inv_mass
+        contact_w = None if coupling is None else cwork.suture_contact_w
         work.lam[:] = 0.0
         work.lam[1:, 0] = state.suture_tension
         work.begin(rod_state)
         work.contact_gap[:] = np.inf
-        needle, needle_state = model.needle, state.needle
-        if needle is None:
-            n_args = (False, 0.0, np.zeros((3, 3)), np.zeros(3))
-            n_pos, n_quat = np.zeros(3), np.array([1.0, 0.0, 0.0, 0.0])
-        else:
-            n_args = (True, needle.body_inv_mass, needle.body_inv_inertia, needle.swage_pos_body)
-            n_pos, n_quat = needle_state.body_pos, needle_state.body_quat
+        state.work.rod_solves = 0
         for _ in range(self.rod_iterations):
+            if model.obstacles is not None:
+                rod_detect_contacts(suture, rod_state, work, model.obstacles)
             if coupling is not None:
                 suture_contact_rows(
-                    coupling.needle_node_count, coupling.params.resistance_eps, cwork.row_kind, cwork.row_tri,
-                    cwork.row_bary, cwork.row_contact_normal, cwork.row_floor, coupling.surface.tri_vertices,
-                    state.tissue.particle_q, model.tissue.particle_inv_mass, rod_state.node_pos, work.contact_gap,
-                    work.contact_normal, cwork.suture_contact_w,
+                    coupling.needle_node_count, coupling.params.resistance_eps, cwork.contact_rows,
+                    coupling.surface.tri_vertices, state.tissue.particle_q, model.tissue.particle_inv_mass,
+                    rod_state.node_pos, work.contact_gap, work.contact_normal, cwork.suture_contact_w,
                 )  # fmt: skip
-            residual = rod_iteration_kernel(
-                inv_mass, suture.seg_rest_length, suture.seg_inv_inertia, suture.seg_stretch_compliance,
-                suture.bend_compliance, dt, self.rod_tolerance, *n_args, work.seg_quat_start, work.seg_tension_prev,
-                work.contact_gap, work.contact_normal, contact_w, work.seg_rot, work.seg_s, work.seg_winv,
-                work.bend_b, work.seg_h, work.att_r, work.att_winv, work.contact_active, work.diag, work.lower,
-                work.rhs, work.dinv, work.y, work.z, work.lam, rod_state.node_pos, rod_state.seg_quat, n_pos,
-                n_quat, work.contact_push,
-            )  # fmt: skip
+            residual = rod_solve_iteration(
+                suture, rod_state, work, dt, model.needle, state.needle, self.rod_tolerance, inv_mass, contact_w
+            )
             if residual <= self.rod_tolerance:
                 break
+            state.work.rod_solves += 1
             if coupling is not None:
                 apply_contact_reaction(
-                    coupling.needle_node_count, cwork.row_kind, cwork.row_tri, cwork.row_bary,
-                    coupling.surface.tri_vertices, work.contact_normal, work.z, model.tissue.particle_inv_mass,
-                    cwork.row_lambda, state.tissue.particle_q,
+                    coupling.needle_node_count, cwork.contact_rows, coupling.surface.tri_vertices,
+                    work.contact_normal, work.z, model.tissue.particle_inv_mass, cwork.row_lambda,
+                    state.tissue.particle_q,
                 )  # fmt: skip
 
     def _update_velocities(self, model: Model, state: State, dt: float) -> bool:
@@ -548,6 +493,8 @@ class Solver:
         if model.suture is not None:
             rod = state.suture
             diverged |= update_particle_velocities(rod.node_pos, rod.node_pos_prev, dt, self.max_speed, rod.node_vel)
+            if model.obstacles is not None and model.obstacles.friction > 0.0:
+                friction_kernel(state.work.rod_work.contact_push, model.obstacles.friction, dt, rod.node_vel)
         if model.needle is not None:
             needle_update_velocities(state.needle, dt)
             reach = float(np.sqrt((model.needle.node_pos_body**2).sum(axis=1).max()))
@@ -561,9 +508,9 @@ class Solver:
         """Readings after the projection: coupling forces, suture tensions (warm start), needle reaction."""
         if model.coupling is not None:
             tip_direction = quat_to_matrix(state.needle.body_quat) @ model.needle.tip_dir_body
-            coupling_finish(model.coupling, state.coupling, model.scratch.coupling_work, dt, tip_direction)
+            coupling_finish(model.coupling, state.coupling, state.work.coupling_work, dt, tip_direction)
         if model.suture is not None:
-            state.suture_tension[:] = np.linalg.norm(model.scratch.rod_work.lam[1:, :3], axis=1)
+            state.suture_tension[:] = np.linalg.norm(state.work.rod_work.lam[1:, :3], axis=1)
         if model.needle is not None:
             state.needle_reaction[:] = needle_constraint_wrench(model.needle, state.needle, dt)
 

@@ -1,0 +1,261 @@
+"""Projection of the needle nodes' rows on the rigid needle, two-way with the tissue."""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+from numba import njit
+
+from suture_gym.sim.coupling.constraints import (
+    node_path_constraint,
+    node_surface_constraint,
+    tissue_point,
+    xpbd_delta_lambda,
+)
+from suture_gym.sim.coupling.params import ROW_ANCHOR, ROW_NONE, ROW_PATH, TINY_LENGTH
+from suture_gym.sim.rigid import (
+    body_point,
+    point_inv_mass_matrix,
+    rigid_apply,
+    rigid_generalized_inv_mass,
+    world_inv_inertia,
+)
+
+
+@njit(cache=True)
+def _project_contact(
+    needle_inv_mass,
+    needle_inv_inertia_body,
+    node_body,
+    tri,
+    bary,
+    normal,
+    tri_vertices,
+    tissue_inv_mass,
+    eps,
+    floor,
+    lam,
+    needle_pos,
+    needle_quat,
+    tissue_q,
+):
+    """A needle node's contact row (:func:`node_surface_constraint`, ``C >= floor``), rigid and two-way;
+    returns the updated multiplier (``lam`` in, kept ``>= 0``).
+
+    ``dlambda = -C / (w_needle + sum_k b_k^2 w_k)`` with ``w_needle`` the needle's generalised inverse mass at
+    the node (body point ``node_body`` (3,)) along ``n``: the needle takes the impulse ``dlambda n`` at the
+    node, vertex ``k`` of the triangle moves by ``-w_k b_k dlambda n``. Updates the needle pose and ``tissue_q``.
+    """
+    i0 = tri_vertices[tri, 0]
+    i1 = tri_vertices[tri, 1]
+    i2 = tri_vertices[tri, 2]
+    q = body_point(needle_pos, needle_quat, node_body)
+    c = node_surface_constraint(q, tissue_q[i0], tissue_q[i1], tissue_q[i2], bary, normal, eps) - floor
+    if c >= 0.0 and lam == 0.0:
+        return lam
+    inv_inertia = world_inv_inertia(needle_quat, needle_inv_inertia_body)
+    ang = np.cross(q - needle_pos, normal)
+    w = rigid_generalized_inv_mass(needle_inv_mass, inv_inertia, normal, ang)
+    w += bary[0] ** 2 * tissue_inv_mass[i0] + bary[1] ** 2 * tissue_inv_mass[i1] + bary[2] ** 2 * tissue_inv_mass[i2]
+    dlam = xpbd_delta_lambda(c, w, 0.0, lam)
+    if lam + dlam < 0.0:
+        dlam = -lam
+    rigid_apply(needle_pos, needle_quat, needle_inv_mass, inv_inertia, normal, ang, dlam)
+    for k in range(3):
+        vi = tri_vertices[tri, k]
+        tissue_q[vi] -= tissue_inv_mass[vi] * bary[k] * dlam * normal
+    return lam + dlam
+
+
+@njit(cache=True)
+def _project_anchor(
+    needle_inv_mass,
+    needle_inv_inertia_body,
+    node_body,
+    tri,
+    bary,
+    normal,
+    tri_vertices,
+    tissue_inv_mass,
+    eps,
+    floor,
+    friction,
+    lam,
+    friction_out,
+    needle_pos,
+    needle_quat,
+    tissue_q,
+):
+    """The tip's anchor row: the tip held ``eps`` above its anchor ``p = sum_k b_k x_k`` (eq. 2 with the
+    contact point fixed in the material, ``C_n = (q - p) . n - eps >= floor``) and over it across the normal,
+    within a Coulomb cone; returns the updated normal multiplier (``lam`` in, kept ``>= 0``).
+
+    The tip is a point of a rigid body whose generalised inverse mass is a full 3 x 3 matrix
+    (``K = I/m - [r]x I^-1 [r]x``, :func:`~suture_gym.sim.needle.point_inv_mass_matrix`, plus the anchor's
+    ``sum_k b_k^2 w_k``): an impulse across the normal also moves the tip along it and sideways, so the
+    normal and friction rows are solved together as one point constraint: the impulse ``P = K^-1 (t - q)``
+    that puts the tip on its target ``t = p + (eps + floor) n``. If the accumulated tangential impulse
+    (``friction_out[:3]``, kg m) would leave the cone ``|P_t| <= friction * P_n``, it is scaled back onto it
+    and the normal part re-solved with it fixed, so the tip slides; ``friction_out[3]`` gets the tangential
+    offset left, m (0 while the tip sticks). The needle takes ``P`` at the tip, vertex ``k`` moves by
+    ``-w_k b_k P``. Updates the needle pose, ``tissue_q`` and ``friction_out`` (4,).
+    """
+    i0 = tri_vertices[tri, 0]
+    i1 = tri_vertices[tri, 1]
+    i2 = tri_vertices[tri, 2]
+    w_tissue = (
+        bary[0] ** 2 * tissue_inv_mass[i0] + bary[1] ** 2 * tissue_inv_mass[i1] + bary[2] ** 2 * tissue_inv_mass[i2]
+    )
+    q = body_point(needle_pos, needle_quat, node_body)
+    p = bary[0] * tissue_q[i0] + bary[1] * tissue_q[i1] + bary[2] * tissue_q[i2]
+    d = p + (eps + floor) * normal - q
+    friction_out[3] = 0.0
+    if d @ normal <= 0.0 and lam == 0.0:  # clear of the surface: no load, the tip slides freely
+        offset = d - (d @ normal) * normal
+        friction_out[3] = math.sqrt(offset @ offset)
+        return lam
+    inv_inertia = world_inv_inertia(needle_quat, needle_inv_inertia_body)
+    r = q - needle_pos
+    k = point_inv_mass_matrix(needle_inv_mass, inv_inertia, r)
+    for a in range(3):
+        k[a, a] += w_tissue
+    impulse = np.linalg.solve(k, d)
+    p_n = impulse @ normal
+    if lam + p_n < 0.0:  # the tissue would have to pull the tip: the contact lets go
+        p_n = -lam
+        impulse = p_n * normal - (friction_out[:3])
+    else:
+        tangential = friction_out[:3] + impulse - p_n * normal
+        size = math.sqrt(tangential @ tangential)
+        cap = friction * (lam + p_n)
+        if size > cap:
+            tangential *= cap / size
+            push_t = tangential - friction_out[:3]
+            kn = k @ normal
+            p_n = (d @ normal - (k @ push_t) @ normal) / (normal @ kn)
+            if lam + p_n < 0.0:
+                p_n = -lam
+            impulse = p_n * normal + push_t
+            moved = k @ impulse - d
+            offset = moved - (moved @ normal) * normal
+            friction_out[3] = max(math.sqrt(offset @ offset), TINY_LENGTH)
+    friction_out[:3] += impulse - (impulse @ normal) * normal
+    rigid_apply(needle_pos, needle_quat, needle_inv_mass, inv_inertia, impulse, np.cross(r, impulse), 1.0)
+    for a in range(3):
+        vi = tri_vertices[tri, a]
+        tissue_q[vi] -= tissue_inv_mass[vi] * bary[a] * impulse
+    return lam + (impulse @ normal)
+
+
+@njit(cache=True)
+def project_needle_rows(needle, tissue, coefficients, rows, tip_friction_out, needle_pos, needle_quat, tissue_q):
+    """One Gauss-Seidel pass over the rows of the needle nodes (strand nodes ``0 .. Nn-1``).
+
+    Contact rows (ROW_TRIANGLE, ROW_WALL, ROW_ANCHOR: :func:`node_surface_constraint` in the row's frame,
+    ``C >= row_floor``, multiplier kept ``>= 0``) and node-path rows (eq. 1) are rigid (zero compliance) and
+    two-way (:func:`_project_contact`, :func:`_project_path_row`): ``dlambda = -C / (w_needle + sum_k b_k^2 w_k)``
+    with ``w_needle`` the needle's generalised inverse mass at the node along the gradient; the needle takes the
+    impulse ``dlambda n`` at the node, tissue vertex ``k`` moves by ``-w_k b_k dlambda n``. The tip's anchor row
+    adds Coulomb friction with coefficient ``tip_friction`` (:func:`_project_anchor`; its tangential impulse
+    and slip in ``tip_friction_out`` (4,)). A node-path multiplier is kept within ``tear_force dt^2`` in
+    magnitude (the tissue gives way beyond it). After each path row, kinetic axial friction
+    (:func:`_project_axial_friction`). Updates the needle pose, ``tissue_q`` and the multipliers.
+
+    Args:
+        needle: ``(Nn, inv_mass 1/kg, inv_inertia_body (3, 3), node_body (Nn, 3) m, pos_prev (3,) m,
+            quat_prev (4,))``: the needle's nodes, inertia and pose at the start of the substep.
+        tissue: ``(inv_mass (N,) 1/kg, q_prev (N, 3) m, tri_vertices (F, 3))``.
+        coefficients: ``(strand_friction (M,) N, eps m, dt s, tip_friction, tear_force N)``.
+        rows: ``CouplingWork.needle_rows``: ``(row_kind, row_tri, row_bary, row_contact_normal, row_floor,
+            row_tissue, row_weight, row_tangent, row_lambda, row_friction_lambda)`` (:class:`CouplingWork`).
+        tip_friction_out: ``(4,)``. needle_pos: ``(3,)`` m, needle_quat: ``(4,)``, tissue_q: ``(N, 3)`` m.
+    """
+    needle_node_count, needle_inv_mass, needle_inv_inertia_body, needle_node_body = needle[:4]
+    tissue_inv_mass, _, tri_vertices = tissue
+    _, eps, _, tip_friction, _ = coefficients
+    row_kind, row_tri, row_bary, row_contact_normal, row_floor = rows[:5]
+    row_lambda = rows[8]
+    for i in range(needle_node_count):
+        kind = row_kind[i]
+        if kind == ROW_NONE:
+            continue
+        if kind == ROW_ANCHOR:
+            row_lambda[i] = _project_anchor(
+                needle_inv_mass, needle_inv_inertia_body, needle_node_body[i], row_tri[i], row_bary[i],
+                row_contact_normal[i], tri_vertices, tissue_inv_mass, eps, row_floor[i], tip_friction,
+                row_lambda[i], tip_friction_out, needle_pos, needle_quat, tissue_q,
+            )  # fmt: skip
+        elif kind != ROW_PATH:
+            row_lambda[i] = _project_contact(
+                needle_inv_mass, needle_inv_inertia_body, needle_node_body[i], row_tri[i], row_bary[i],
+                row_contact_normal[i], tri_vertices, tissue_inv_mass, eps, row_floor[i], row_lambda[i],
+                needle_pos, needle_quat, tissue_q,
+            )  # fmt: skip
+        else:
+            _project_path_row(i, needle, tissue_inv_mass, coefficients, rows, needle_pos, needle_quat, tissue_q)
+            _project_axial_friction(i, needle, tissue, coefficients, rows, needle_pos, needle_quat, tissue_q)
+
+
+@njit(cache=True)
+def _path_row_tissue_w(i, tissue_inv_mass, rows):
+    """``sum_a w_a^2 w_tissue_a`` (1/kg) of the path point of node ``i``'s path row."""
+    idx, wt = rows[5][i], rows[6][i]
+    w_tissue = 0.0
+    for a in range(idx.shape[0]):
+        w_tissue += wt[a] * wt[a] * tissue_inv_mass[idx[a]]
+    return w_tissue
+
+
+@njit(cache=True)
+def _project_path_row(i, needle, tissue_inv_mass, coefficients, rows, needle_pos, needle_quat, tissue_q):
+    """Needle node ``i``'s node-path row (eq. 1, :func:`node_path_constraint`), rigid and two-way, its
+    multiplier kept above ``-tear_force dt^2``. Arguments as :func:`project_needle_rows`."""
+    _, needle_inv_mass, needle_inv_inertia_body, needle_node_body = needle[:4]
+    _, _, dt, _, tear_force = coefficients
+    idx, wt, t, row_lambda = rows[5][i], rows[6][i], rows[7][i], rows[8]
+    inv_inertia = world_inv_inertia(needle_quat, needle_inv_inertia_body)
+    q = body_point(needle_pos, needle_quat, needle_node_body[i])
+    r = q - needle_pos
+    p = tissue_point(tissue_q, idx, wt)
+    w_tissue = _path_row_tissue_w(i, tissue_inv_mass, rows)
+    ok, c, n = node_path_constraint(q, p, t)
+    if ok:
+        w = rigid_generalized_inv_mass(needle_inv_mass, inv_inertia, n, np.cross(r, n)) + w_tissue
+        dlam = xpbd_delta_lambda(c, w, 0.0, row_lambda[i])
+        dlam = max(row_lambda[i] + dlam, -tear_force * dt * dt) - row_lambda[i]
+        row_lambda[i] += dlam
+        rigid_apply(needle_pos, needle_quat, needle_inv_mass, inv_inertia, n, np.cross(r, n), dlam)
+        for a in range(idx.shape[0]):
+            tissue_q[idx[a]] -= tissue_inv_mass[idx[a]] * wt[a] * dlam * n
+
+
+@njit(cache=True)
+def _project_axial_friction(i, needle, tissue, coefficients, rows, needle_pos, needle_quat, tissue_q):
+    """Kinetic axial friction of needle node ``i`` on its path: the relative displacement of node and path point
+    along the tangent since the start of the substep is removed up to a multiplier of ``strand_friction[i] dt^2``
+    in magnitude (static below the cap, sliding at the cap). Arguments as :func:`project_needle_rows`."""
+    _, needle_inv_mass, needle_inv_inertia_body, needle_node_body, needle_pos_prev, needle_quat_prev = needle
+    tissue_inv_mass, tissue_q_prev, _ = tissue
+    strand_friction, _, dt, _, _ = coefficients
+    idx, wt, t, row_friction_lambda = rows[5][i], rows[6][i], rows[7][i], rows[9]
+    cap = strand_friction[i] * dt * dt
+    if cap <= 0.0:
+        return
+    inv_inertia = world_inv_inertia(needle_quat, needle_inv_inertia_body)
+    q = body_point(needle_pos, needle_quat, needle_node_body[i])
+    r = q - needle_pos
+    q0 = body_point(needle_pos_prev, needle_quat_prev, needle_node_body[i])
+    p = tissue_point(tissue_q, idx, wt)
+    p0 = tissue_point(tissue_q_prev, idx, wt)
+    slip = ((q - q0) - (p - p0)) @ t
+    w = rigid_generalized_inv_mass(needle_inv_mass, inv_inertia, t, np.cross(r, t)) + _path_row_tissue_w(
+        i, tissue_inv_mass, rows
+    )
+    dlam = xpbd_delta_lambda(slip, w, 0.0, 0.0)
+    total = min(max(row_friction_lambda[i] + dlam, -cap), cap)
+    dlam = total - row_friction_lambda[i]
+    row_friction_lambda[i] = total
+    rigid_apply(needle_pos, needle_quat, needle_inv_mass, inv_inertia, t, np.cross(r, t), dlam)
+    for a in range(idx.shape[0]):
+        tissue_q[idx[a]] -= tissue_inv_mass[idx[a]] * wt[a] * dlam * t

@@ -1,0 +1,115 @@
+"""Parameters of the strand-tissue interaction and the codes of node states and row kinds."""
+
+from __future__ import annotations
+
+import math
+import numbers
+from dataclasses import dataclass
+
+from suture_gym.sim.checks import is_real
+
+#: Node states of paper section 4.1.
+NODE_HEAD = 0
+NODE_IN = 1
+NODE_OUT = 2
+
+#: Constraint row kinds of a strand node.
+ROW_NONE = 0
+ROW_TRIANGLE = 1
+ROW_PATH = 2
+ROW_ANCHOR = 3
+ROW_WALL = 4
+
+#: Tissue vertices a node-path row touches: the two tets of the path nodes either side of the projection.
+PATH_ROW_VERTICES = 8
+
+#: Below this length (m) a direction is undefined and the constraint is skipped (degenerate geometry).
+TINY_LENGTH = 1.0e-12
+
+
+@dataclass(frozen=True)
+class CouplingParams:
+    """Parameters of the strand-tissue interaction (SI units).
+
+    Attributes:
+        puncture_force: force, N, the tip must exert on the surface to puncture it (default 1.0 N; measured
+            suture-needle puncture forces are 0.6-0.9 N in cartilage). Scale it with the tissue: 1 N indents a
+            1 kPa tissue by several centimetres before it is reached.
+        tip_length: m; the tip force is the contact force of the needle nodes within this arc length of the
+            point (the tapered tip: the default 2 mm spans the first three of the default needle's 30 nodes,
+            which share the load once the dent is deeper than the node spacing).
+        resistance_eps: ``eps`` of paper eq. 2 and Fig. 2a, m: thickness of the resistance layer, the gap the
+            node-triangle constraint keeps between strand nodes and the surface.
+        path_spacing_min: ``l`` of paper section 4.3, m: no path node is added closer than this to the last.
+        path_spacing_max: ``h``, m: a longer step adds ``floor(d / h)`` nodes. Defaults ``l = 1.2 mm``,
+            ``h = 1.7 mm`` (the paper's 1.2 / 1.7 cm scaled to a 26 mm needle): a bite through one 30 mm wound
+            edge of the two-bar scene with the default half-circle needle is 10-14 mm of path, 6-11 nodes.
+        tear_force: N, the largest force one node-path or node-access row transmits: beyond it the tissue gives
+            way and the strand cuts through (tear-through forces of sutures are 3-4 N). A coupling force
+            reaching it sets the sticky damage flag.
+        tip_friction: Coulomb friction coefficient of the tip on the surface before puncture (>= 0): the sharp
+            tip engages the surface point it first touches (the *anchor*) and slides only while the tangential
+            force exceeds ``tip_friction`` times the normal force.
+        depenetration_speed: m/s; a strand node that starts a substep inside a contact's resistance layer is
+            moved out by at most ``depenetration_speed * dt`` per substep instead of all at once (a contact
+            the prediction violates from outside is still resolved fully).
+        needle_axial_friction: kinetic friction force per metre of needle inside the tissue, N/m, resisting
+            the needle's motion along its path relative to the tissue (0 disables it).
+        contact_margin: m; node-triangle rows are made for strand nodes closer than ``eps + contact_margin`` to
+            the surface (speculative contacts: a one-sided row acts only once violated, and a node that a
+            projection left exactly at ``eps`` keeps its row in the next substep instead of flickering).
+        track_window: half-width, m, of the strand interval searched around the previous strand coordinate
+            of each access point: the farthest the strand may slide through an access point in one substep
+            (2 mm: 2 m/s at 1 ms substeps).
+        broad_phase_margin: m; strand nodes farther than this outside the tissue's bounding box are skipped.
+        max_paths: capacity of the path vector; a puncture with no free slot is refused and flags overflow.
+        max_path_nodes: capacity of the path-node buffer shared by all paths; growth stops (overflow) when full.
+    """
+
+    puncture_force: float = 1.0
+    tip_length: float = 2.0e-3
+    resistance_eps: float = 3.0e-4
+    path_spacing_min: float = 1.2e-3
+    path_spacing_max: float = 1.7e-3
+    tear_force: float = 4.0
+    tip_friction: float = 1.0
+    depenetration_speed: float = 0.1
+    needle_axial_friction: float = 10.0
+    contact_margin: float = 1.0e-3
+    track_window: float = 2.0e-3
+    broad_phase_margin: float = 5.0e-3
+    max_paths: int = 16
+    max_path_nodes: int = 1024
+
+    def __post_init__(self) -> None:
+        for name in (
+            "puncture_force",
+            "tip_length",
+            "resistance_eps",
+            "path_spacing_min",
+            "path_spacing_max",
+            "tear_force",
+            "depenetration_speed",
+            "contact_margin",
+            "track_window",
+            "broad_phase_margin",
+        ):
+            value = getattr(self, name)
+            if not (is_real(value) and math.isfinite(value) and value > 0.0):
+                raise ValueError(f"CouplingParams.{name} must be a finite number > 0, got {value!r}")
+            object.__setattr__(self, name, float(value))
+        for name in ("needle_axial_friction", "tip_friction"):
+            value = getattr(self, name)
+            if not (is_real(value) and math.isfinite(value) and value >= 0.0):
+                raise ValueError(f"CouplingParams.{name} must be a finite number >= 0, got {value!r}")
+            object.__setattr__(self, name, float(value))
+        if self.path_spacing_min > self.path_spacing_max:
+            raise ValueError(
+                f"CouplingParams.path_spacing_min ({self.path_spacing_min}) must not exceed "
+                f"path_spacing_max ({self.path_spacing_max})"
+            )
+        for name in ("max_paths", "max_path_nodes"):
+            value = getattr(self, name)
+            if isinstance(value, bool) or not isinstance(value, numbers.Integral) or value < 1:
+                raise ValueError(f"CouplingParams.{name} must be an integer >= 1, got {value!r}")
+            object.__setattr__(self, name, int(value))

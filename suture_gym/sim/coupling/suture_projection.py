@@ -1,0 +1,239 @@
+"""Projection of the suture nodes' rows and of the node-access rows, two-way with the tissue."""
+
+from __future__ import annotations
+
+import numpy as np
+from numba import njit
+
+from suture_gym.sim.coupling.constraints import (
+    node_access_constraint,
+    node_path_constraint,
+    node_surface_constraint,
+    tissue_point,
+    xpbd_delta_lambda,
+)
+from suture_gym.sim.coupling.params import PATH_ROW_VERTICES, ROW_PATH, ROW_TRIANGLE, ROW_WALL
+from suture_gym.sim.rigid import (
+    body_point,
+    rigid_apply,
+    rigid_generalized_inv_mass,
+    world_inv_inertia,
+)
+
+
+@njit(cache=True)
+def embedded_inv_mass(needle_node_count, node_rows, access_rows, access_count, tri_vertices, tissue_inv_mass,
+                      suture_inv_mass, out):  # fmt: skip
+    """Inverse masses (1/kg) the projections use for the suture nodes this substep: a node held on a path
+    (node-path row) carries the inertia of the tissue point it is embedded in, ``min(w_node, sum_k b_k^2 w_k)``,
+    and a node of a strand piece through an access point that of the access point,
+    ``min(w_node, sum_v bary_v^2 w_v)``; the others keep their own. Writes ``out`` (Ns,).
+
+    Why: the thread is 3e-8 kg per node against 1e-4 kg tissue nodes. Projected with its own mass, a node on a
+    path would take the whole of every correction: the inextensible rod's solve pulls a taut thread straight
+    across the path's bends, the node-path projection puts the node back, and the tissue never feels the
+    tension. Embedded in the tissue, the node moves across the path with the tissue, so the solve shares the
+    thread's length between the needle, the free thread and the tissue, and the node-path projection splits
+    the rest evenly between node and tissue. It slides along the path freely (no row along the tangent); the
+    same holds for the thread in the hole at an access point. A thread node merely touching the surface
+    keeps its own mass: it cannot dent the tissue (an embedded mass there makes the contact push the surface
+    by half of every penetration, which turned out violent).
+    """
+    row_kind, _, row_tissue, row_weight, _ = node_rows
+    access_node, access_weight, _, access_tri, access_bary = access_rows
+    nn = needle_node_count
+    for j in range(suture_inv_mass.shape[0]):
+        out[j] = suture_inv_mass[j]
+        if j == 0:
+            continue
+        i = nn + j - 1
+        if row_kind[i] != ROW_PATH:
+            continue
+        w = 0.0
+        for a in range(PATH_ROW_VERTICES):
+            w += row_weight[i, a] ** 2 * tissue_inv_mass[row_tissue[i, a]]
+        if w > 0.0 and w < out[j]:
+            out[j] = w
+    for a in range(access_count):
+        w = 0.0
+        for v in range(3):
+            w += access_bary[a, v] ** 2 * tissue_inv_mass[tri_vertices[access_tri[a], v]]
+        if w <= 0.0:
+            continue
+        for e in range(4):
+            node = access_node[a, e]
+            if node >= nn and access_weight[a, e] > 0.0:
+                j = node - nn + 1
+                if w < out[j]:
+                    out[j] = w
+
+
+@njit(cache=True)
+def project_suture_path_rows(
+    needle_node_count,
+    row_kind,
+    row_tissue,
+    row_weight,
+    row_tangent,
+    suture_inv_mass,
+    tissue_inv_mass,
+    force_cap,
+    row_lambda,
+    suture_q,
+    tissue_q,
+):
+    """One Gauss-Seidel pass over the suture nodes' node-path rows (eq. 1, ``C = |(p - q) x t|``), rigid and
+    two-way between the node (its embedded inverse mass, :func:`embedded_inv_mass`) and the path point's tissue
+    vertices, each multiplier kept within ``force_cap`` (kg m, the tear force times ``dt^2``) in magnitude.
+    Updates ``suture_q``, ``tissue_q`` and ``row_lambda``."""
+    nn = needle_node_count
+    for j in range(1, suture_q.shape[0]):
+        i = nn + j - 1
+        if row_kind[i] != ROW_PATH:
+            continue
+        idx = row_tissue[i]
+        wt = row_weight[i]
+        p = tissue_point(tissue_q, idx, wt)
+        ok, c, n = node_path_constraint(suture_q[j], p, row_tangent[i])
+        if not ok:
+            continue
+        w = suture_inv_mass[j]
+        for a in range(PATH_ROW_VERTICES):
+            w += wt[a] * wt[a] * tissue_inv_mass[idx[a]]
+        dlam = xpbd_delta_lambda(c, w, 0.0, row_lambda[i])
+        dlam = max(row_lambda[i] + dlam, -force_cap) - row_lambda[i]
+        row_lambda[i] += dlam
+        suture_q[j] += suture_inv_mass[j] * dlam * n
+        for a in range(PATH_ROW_VERTICES):
+            tissue_q[idx[a]] -= tissue_inv_mass[idx[a]] * wt[a] * dlam * n
+
+
+@njit(cache=True)
+def suture_contact_rows(needle_node_count, eps, contact_rows, tri_vertices, tissue_q, tissue_inv_mass, suture_q,
+                        out_gap, out_normal, out_tissue_w):  # fmt: skip
+    """The suture nodes' contact rows (:func:`node_surface_constraint` in the row's frame) as the rod's
+    one-sided contact rows: ``gap = C - floor`` (``row_floor``, :func:`contact_floors`) at the current
+    positions, ``normal = n``, and the generalised inverse mass of the surface point ``sum_v b_v^2 w_v`` (1/kg)
+    in ``out_tissue_w``. Nodes without a contact row (and node 0, on the swage) keep their ``out_gap`` and
+    ``out_normal`` (+inf, or a static obstacle's, :func:`~suture_gym.sim.rod.rod_detect_contacts`) and get
+    ``out_tissue_w = 0``. Writes ``out_gap`` (Ns,), ``out_normal`` (Ns, 3), ``out_tissue_w`` (Ns,)."""
+    row_kind, row_tri, row_bary, row_contact_normal, row_floor = contact_rows
+    nn = needle_node_count
+    for j in range(suture_q.shape[0]):
+        out_tissue_w[j] = 0.0
+        if j == 0:
+            continue
+        i = nn + j - 1
+        if row_kind[i] != ROW_TRIANGLE and row_kind[i] != ROW_WALL:
+            continue
+        tri = row_tri[i]
+        b = row_bary[i]
+        c = node_surface_constraint(
+            suture_q[j],
+            tissue_q[tri_vertices[tri, 0]],
+            tissue_q[tri_vertices[tri, 1]],
+            tissue_q[tri_vertices[tri, 2]],
+            b,
+            row_contact_normal[i],
+            eps,
+        )
+        out_gap[j] = c - row_floor[i]
+        out_normal[j] = row_contact_normal[i]
+        for v in range(3):
+            out_tissue_w[j] += b[v] * b[v] * tissue_inv_mass[tri_vertices[tri, v]]
+
+
+@njit(cache=True)
+def apply_contact_reaction(needle_node_count, contact_rows, tri_vertices, contact_normal, z, tissue_inv_mass,
+                           row_lambda, tissue_q):  # fmt: skip
+    """Give the tissue the reaction of the rod's contact steps ``z[j, 6]`` (kg m) on suture nodes with a
+    node-triangle row: triangle vertex ``v`` moves by ``-w_v b_v z normal``, so the exchange conserves
+    momentum. Adds each step to ``row_lambda``. Updates ``tissue_q``."""
+    row_kind, row_tri, row_bary = contact_rows[:3]
+    nn = needle_node_count
+    for j in range(1, z.shape[0]):
+        i = nn + j - 1
+        dlam = z[j, 6]
+        if (row_kind[i] != ROW_TRIANGLE and row_kind[i] != ROW_WALL) or dlam == 0.0:
+            continue
+        row_lambda[i] += dlam
+        for v in range(3):
+            vi = tri_vertices[row_tri[i], v]
+            tissue_q[vi] -= tissue_inv_mass[vi] * row_bary[i, v] * dlam * contact_normal[j]
+
+
+@njit(cache=True)
+def _strand_point(node, needle_node_count, needle_pos, needle_quat, needle_node_body, suture_q):
+    """World position (3,) of strand node ``node`` (needle node from the pose, or suture node)."""
+    if node < needle_node_count:
+        return body_point(needle_pos, needle_quat, needle_node_body[node])
+    return suture_q[node - needle_node_count + 1].copy()
+
+
+@njit(cache=True)
+def project_access_rows(access, access_count, needle, suture_inv_mass, tissue_inv_mass, tri_vertices, force_cap,
+                        access_lambda, needle_pos, needle_quat, suture_q, tissue_q):  # fmt: skip
+    """One Gauss-Seidel pass over the first ``access_count`` node-access rows (eq. 3, inequality ``C <= 0``),
+    two-way, each multiplier kept within ``force_cap`` (kg m, the tear force times ``dt^2``) in magnitude.
+
+    The strand piece's ends are ``pa = w0 x0 + w1 x1`` and ``pb = w2 x2 + w3 x3`` (strand nodes
+    ``access_node``, weights ``access_weight``), so node ``k`` gets the gradient ``w_k ga`` or ``w_k gb``.
+    Needle nodes are points of the rigid needle (their gradients add up into one body Jacobian, generalised
+    inverse mass), suture nodes particles, and the access point ``b = sum_v bary_v x_v`` gives its triangle's
+    vertices ``-bary_v (ga + gb)``. Updates the needle pose, ``suture_q``, ``tissue_q`` and ``access_lambda``.
+
+    Args:
+        access: ``CouplingWork.access_rows``: ``(access_node (2K, 4), access_weight (2K, 4), access_rest (2K,) m,
+            access_tri (2K,), access_bary (2K, 3))``.
+        needle: ``(Nn, inv_mass 1/kg, inv_inertia_body (3, 3), node_body (Nn, 3) m)``.
+        suture_inv_mass: ``(Ns,)`` 1/kg. tissue_inv_mass: ``(N,)`` 1/kg. tri_vertices: ``(F, 3)``.
+        access_lambda: ``(2K,)`` kg m. needle_pos: ``(3,)`` m. needle_quat: ``(4,)``. suture_q: ``(Ns, 3)`` m.
+        tissue_q: ``(N, 3)`` m.
+    """
+    access_node, access_weight, access_rest, access_tri, access_bary = access
+    needle_node_count, needle_inv_mass, needle_inv_inertia_body, needle_node_body = needle
+    nn = needle_node_count
+    for a in range(access_count):
+        tri = access_tri[a]
+        b = np.zeros(3)
+        w_tissue_scale = 0.0
+        for v in range(3):
+            b += access_bary[a, v] * tissue_q[tri_vertices[tri, v]]
+            w_tissue_scale += access_bary[a, v] ** 2 * tissue_inv_mass[tri_vertices[tri, v]]
+        ends = np.zeros((2, 3))
+        points = np.zeros((4, 3))
+        for e in range(4):
+            points[e] = _strand_point(access_node[a, e], nn, needle_pos, needle_quat, needle_node_body, suture_q)
+            ends[e // 2] += access_weight[a, e] * points[e]
+        ok, c, ga, gb = node_access_constraint(ends[0], ends[1], b, access_rest[a])
+        if not ok or c <= 0.0:
+            continue
+        gs = ga + gb
+        lin = np.zeros(3)
+        ang = np.zeros(3)
+        w = w_tissue_scale * (gs @ gs)
+        for e in range(4):
+            node = access_node[a, e]
+            g = access_weight[a, e] * (ga if e < 2 else gb)
+            if node < nn:
+                lin += g
+                ang += np.cross(points[e] - needle_pos, g)
+            else:
+                w += suture_inv_mass[node - nn + 1] * (g @ g)
+        inv_inertia = world_inv_inertia(needle_quat, needle_inv_inertia_body)
+        if lin @ lin + ang @ ang > 0.0:
+            w += rigid_generalized_inv_mass(needle_inv_mass, inv_inertia, lin, ang)
+        dlam = xpbd_delta_lambda(c, w, 0.0, access_lambda[a])
+        dlam = max(access_lambda[a] + dlam, -force_cap) - access_lambda[a]
+        access_lambda[a] += dlam
+        if lin @ lin + ang @ ang > 0.0:
+            rigid_apply(needle_pos, needle_quat, needle_inv_mass, inv_inertia, lin, ang, dlam)
+        for e in range(4):
+            node = access_node[a, e]
+            if node >= nn:
+                g = access_weight[a, e] * (ga if e < 2 else gb)
+                sn = node - nn + 1
+                suture_q[sn] += suture_inv_mass[sn] * dlam * g
+        for v in range(3):
+            vi = tri_vertices[tri, v]
+            tissue_q[vi] -= tissue_inv_mass[vi] * access_bary[a, v] * dlam * gs

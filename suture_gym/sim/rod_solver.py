@@ -1,0 +1,697 @@
+"""The direct block-tridiagonal XPBD solve of the suture rod (:mod:`suture_gym.sim.rod`): the constraint maths,
+their linearisation into the block system, its solve and the application of the multiplier steps.
+
+The rod's module docstring describes the model and the solver; :func:`rod_iteration_kernel` is one iteration.
+Kernels take their arrays in groups (tuples built once by :class:`~suture_gym.sim.rod.RodWork`), named as there:
+
+* ``rod``: ``(node_inv_mass (N,) 1/kg, seg_rest_length (N-1,) m, seg_inv_inertia (N-1, 3) 1/(kg m^2),
+  seg_stretch_compliance (N-1, 3), bend_compliance (N-2, 3), contact_w (N,) 1/kg)``;
+* ``needle``: ``(has_needle, needle_inv_mass 1/kg, needle_inv_inertia_body (3, 3), swage_body (3,) m)``;
+* ``start``: ``RodWork.start``, ``(seg_quat_start (N-1, 4), seg_tension_prev (N-1,) kg m^2)``;
+* ``frames``: ``RodWork.frames``, ``(seg_rot, seg_s, seg_winv (N-1, 3, 3), bend_b (N-2, 3, 3), seg_h (N-1, 3),
+  att_r (3,), att_winv (3, 3))``;
+* ``contacts``: ``RodWork.contacts``, ``(contact_gap (N,) m, contact_normal (N, 3), contact_active (N,),
+  contact_push (N, 3) m)``;
+* ``system``: ``RodWork.system``, ``(diag, lower, dinv (N, 7, 7), rhs, y, z (N, 7))``.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+from numba import njit
+
+from suture_gym.sim.quat import quat_to_matrix, quat_to_matrix_into, quat_turn_into
+
+#: A pivot of the block solve below this fraction of its row's diagonal marks the row as redundant.
+_PIVOT_TOL = 1.0e-12
+#: Rows per block of the direct solve: 3 stretch-shear (or attachment), 3 bend-twist, 1 contact.
+BLOCK = 7
+#: Weight of the frames' Newton residual |h| (rad) in the convergence measure. Measured on a 200-node thread
+#: dragged over the ground: once |h| <= 1e-3 rad the nodes are within ~3e-8 m (3e-5 of a segment) of the fully
+#: converged solve, so a tolerance of 1e-6 on the weighted value stops there.
+_FRAME_RESIDUAL_WEIGHT = 1.0e-3
+#: Most re-solves per iteration for releasing contacts that would pull (a thread peeling off the ground or the
+#: tissue releases about one node per pass; the rest follow in the next iterations).
+_MAX_RELEASE_PASSES = 4
+
+
+# ---------------------------------------------------------------------------------------------------------
+# Constraint maths
+# ---------------------------------------------------------------------------------------------------------
+
+
+@njit(cache=True)
+def dot3(a, b):
+    """Dot product of two 3-vectors."""
+    return a[0] * b[0] + a[1] * b[1] + a[2] * b[2]
+
+
+@njit(cache=True)
+def _ab_into(a, b, out):
+    """``out[:] = a @ b`` for small matrices, by loops (no BLAS call, no allocation)."""
+    for i in range(a.shape[0]):
+        for j in range(b.shape[1]):
+            t = 0.0
+            for k in range(a.shape[1]):
+                t += a[i, k] * b[k, j]
+            out[i, j] = t
+
+
+@njit(cache=True)
+def _abt_acc(a, b, scale, out):
+    """``out += scale * a @ b.T`` for small matrices, by loops."""
+    for i in range(a.shape[0]):
+        for j in range(b.shape[0]):
+            t = 0.0
+            for k in range(a.shape[1]):
+                t += a[i, k] * b[j, k]
+            out[i, j] += scale * t
+
+
+@njit(cache=True)
+def _mv_acc(a, v, scale, out):
+    """``out += scale * a @ v``."""
+    for i in range(a.shape[0]):
+        t = 0.0
+        for k in range(a.shape[1]):
+            t += a[i, k] * v[k]
+        out[i] += scale * t
+
+
+@njit(cache=True)
+def _mtv_acc(a, v, scale, out):
+    """``out += scale * a.T @ v``."""
+    for k in range(a.shape[0]):
+        vk = scale * v[k]
+        for i in range(a.shape[1]):
+            out[i] += a[k, i] * vk
+
+
+@njit(cache=True)
+def _rot_diag_into(r, d, scale, out):
+    """``out[:] = scale * R diag(d) R^T`` (3, 3) for rotation ``r`` (3, 3) and diagonal ``d`` (3,)."""
+    for i in range(3):
+        for j in range(3):
+            out[i, j] = scale * (r[i, 0] * d[0] * r[j, 0] + r[i, 1] * d[1] * r[j, 1] + r[i, 2] * d[2] * r[j, 2])
+
+
+@njit(cache=True)
+def _skew_into(x, y, z, out):
+    """Write ``[(x, y, z)]x`` into ``out`` (3, 3)."""
+    out[0, 0] = 0.0
+    out[0, 1] = -z
+    out[0, 2] = y
+    out[1, 0] = z
+    out[1, 1] = 0.0
+    out[1, 2] = -x
+    out[2, 0] = -y
+    out[2, 1] = x
+    out[2, 2] = 0.0
+
+
+@njit(cache=True)
+def stretch_shear_constraint(x0, x1, q, rest_length):
+    """Stretch-shear ``C = (x1 - x0) / l - d3(q)`` (3,) of one segment (Kugelstadt & Schomer 2016).
+
+    ``x0, x1`` (3,) m, ``q`` (4,) unit, ``rest_length`` m. Gradients: ``dC/dx1 = I/l``, ``dC/dx0 = -I/l`` and,
+    for a world rotation-vector perturbation ``q <- exp(dtheta/2) q``, ``dC/dtheta = [d3]x``
+    (:func:`stretch_shear_jacobian`).
+    """
+    r = quat_to_matrix(q)
+    out = np.empty(3)
+    for i in range(3):
+        out[i] = (x1[i] - x0[i]) / rest_length - r[i, 2]
+    return out
+
+
+@njit(cache=True)
+def stretch_shear_jacobian(q):
+    """``dC_ss / dtheta = [d3(q)]x`` (3, 3) for a world rotation vector ``dtheta`` applied to ``q``."""
+    r = quat_to_matrix(q)
+    s = np.zeros((3, 3))
+    _skew_into(r[0, 2], r[1, 2], r[2, 2], s)
+    return s
+
+
+@njit(cache=True)
+def _darboux(q0, q1):
+    """``r = conj(q0) q1`` as a tuple (w, x, y, z), sign chosen so that ``w >= 0`` (same rotation)."""
+    w = q0[0] * q1[0] + q0[1] * q1[1] + q0[2] * q1[2] + q0[3] * q1[3]
+    x = q0[0] * q1[1] - q0[1] * q1[0] - q0[2] * q1[3] + q0[3] * q1[2]
+    y = q0[0] * q1[2] + q0[1] * q1[3] - q0[2] * q1[0] - q0[3] * q1[1]
+    z = q0[0] * q1[3] - q0[1] * q1[2] + q0[2] * q1[1] - q0[3] * q1[0]
+    if w < 0.0:
+        return -w, -x, -y, -z
+    return w, x, y, z
+
+
+@njit(cache=True)
+def bend_twist_constraint(q0, q1):
+    """Bend-twist ``C = Im(conj(q0) q1)`` (3,) in q0's frame, rest shape straight (Kugelstadt & Schomer 2016).
+
+    ``C ~ (l/2) Omega`` with Omega the discrete Darboux vector (curvatures about d1, d2 and twist about d3);
+    the sign of ``conj(q0) q1`` is chosen with a non-negative real part.
+    """
+    _, x, y, z = _darboux(q0, q1)
+    out = np.empty(3)
+    out[0] = x
+    out[1] = y
+    out[2] = z
+    return out
+
+
+@njit(cache=True)
+def _bend_twist_jacobian_into(q0, q1, r0, out):
+    """Write ``B = 1/2 (r_w I - [r_v]x) R0^T`` into ``out`` (3, 3); ``r0`` (3, 3) is ``R(q0)``."""
+    w, x, y, z = _darboux(q0, q1)
+    m = np.empty((3, 3))
+    _skew_into(-x, -y, -z, m)
+    for i in range(3):
+        m[i, i] = w
+    for i in range(3):
+        for j in range(3):
+            out[i, j] = 0.5 * (m[i, 0] * r0[j, 0] + m[i, 1] * r0[j, 1] + m[i, 2] * r0[j, 2])
+
+
+@njit(cache=True)
+def bend_twist_jacobian(q0, q1):
+    """``B = dC_bt / dtheta1 = 1/2 (r_w I - [r_v]x) R(q0)^T`` (3, 3); ``dC_bt / dtheta0 = -B``.
+
+    ``r = conj(q0) q1`` (sign as in :func:`bend_twist_constraint`), ``dtheta`` world rotation vectors.
+    """
+    out = np.empty((3, 3))
+    _bend_twist_jacobian_into(q0, q1, quat_to_matrix(q0), out)
+    return out
+
+
+# ---------------------------------------------------------------------------------------------------------
+# Direct block-tridiagonal solve
+# ---------------------------------------------------------------------------------------------------------
+
+
+@njit(cache=True)
+def guarded_inverse(a, lmat, d, out):
+    """Inverse of a symmetric positive semi-definite :data:`BLOCK` x :data:`BLOCK` matrix ``a`` by LDL^T.
+
+    ``lmat`` (7, 7) and ``d`` (7,) are scratch; the inverse goes to ``out`` (7, 7). A row whose pivot falls
+    below ``1e-12`` of its diagonal (a redundant or fully pinned constraint) is dropped: its rows and columns
+    of ``out`` are zero, so it receives no multiplier. (Fixed size so that the loops compile unrolled.)
+    """
+    n = BLOCK
+    for j in range(n):
+        for i in range(n):
+            lmat[i, j] = 0.0
+        lmat[j, j] = 1.0
+        s = a[j, j]
+        for k in range(j):
+            s -= lmat[j, k] * lmat[j, k] * d[k]
+        if a[j, j] <= 0.0 or s <= _PIVOT_TOL * a[j, j]:
+            d[j] = 0.0
+            continue
+        d[j] = s
+        for i in range(j + 1, n):
+            t = a[i, j]
+            for k in range(j):
+                t -= lmat[i, k] * lmat[j, k] * d[k]
+            lmat[i, j] = t / s
+    # lmat <- its inverse (unit lower triangular) in place: column j, rows top-down, uses the new rows above
+    # and the old entries of later columns
+    for j in range(n):
+        for i in range(j + 1, n):
+            t = lmat[i, j]
+            for k in range(j + 1, i):
+                t += lmat[i, k] * lmat[k, j]
+            lmat[i, j] = -t
+    for i in range(n):
+        for j in range(i, n):
+            t = 0.0
+            for k in range(j, n):
+                if d[k] > 0.0:
+                    t += lmat[k, i] * lmat[k, j] / d[k]
+            out[i, j] = t
+            out[j, i] = t
+
+
+@njit(cache=True)
+def solve_block_tridiagonal(diag, lower, rhs, dinv, y, z):
+    """Solve ``A z = rhs`` for symmetric block-tridiagonal ``A`` by a block LU sweep, O(number of blocks).
+
+    ``diag`` (B, 7, 7) are the diagonal blocks ``A[b, b]``, ``lower`` (B, 7, 7) the blocks ``A[b, b-1]``
+    (``lower[0]`` unused), ``rhs`` (B, 7). Scratch: ``dinv`` (B, 7, 7), ``y`` (B, 7). Output ``z`` (B, 7).
+    """
+    k7 = BLOCK
+    nb = rhs.shape[0]
+    lmat = np.empty((k7, k7))
+    dvec = np.empty(k7)
+    lfac = np.empty((k7, k7))
+    schur = np.empty((k7, k7))
+    tv = np.empty(k7)
+    guarded_inverse(diag[0], lmat, dvec, dinv[0])
+    y[0] = rhs[0]
+    for b in range(1, nb):
+        for i in range(k7):
+            for j in range(k7):
+                t = 0.0
+                for k in range(k7):
+                    t += lower[b, i, k] * dinv[b - 1, k, j]
+                lfac[i, j] = t
+        for i in range(k7):
+            for j in range(k7):
+                t = diag[b, i, j]
+                for k in range(k7):
+                    t -= lfac[i, k] * lower[b, j, k]
+                schur[i, j] = t
+        guarded_inverse(schur, lmat, dvec, dinv[b])
+        for i in range(k7):
+            t = rhs[b, i]
+            for k in range(k7):
+                t -= lfac[i, k] * y[b - 1, k]
+            y[b, i] = t
+    for i in range(k7):
+        t = 0.0
+        for k in range(k7):
+            t += dinv[nb - 1, i, k] * y[nb - 1, k]
+        z[nb - 1, i] = t
+    for b in range(nb - 2, -1, -1):
+        for i in range(k7):
+            t = y[b, i]
+            for k in range(k7):
+                t -= lower[b + 1, k, i] * z[b + 1, k]
+            tv[i] = t
+        for i in range(k7):
+            t = 0.0
+            for k in range(k7):
+                t += dinv[b, i, k] * tv[k]
+            z[b, i] = t
+
+
+@njit(cache=True)
+def align_frames(node_pos, seg_inv_inertia, seg_quat):
+    """Parallel-transport each free segment frame so that d3 points along its edge (minimal rotation).
+
+    Clamped segments (zero inverse inertia) and zero-length edges are left alone. Updates ``seg_quat``.
+    """
+    theta = np.empty(3)
+    for j in range(seg_quat.shape[0]):
+        if seg_inv_inertia[j, 0] == 0.0 and seg_inv_inertia[j, 1] == 0.0 and seg_inv_inertia[j, 2] == 0.0:
+            continue
+        ex = node_pos[j + 1, 0] - node_pos[j, 0]
+        ey = node_pos[j + 1, 1] - node_pos[j, 1]
+        ez = node_pos[j + 1, 2] - node_pos[j, 2]
+        en = np.sqrt(ex * ex + ey * ey + ez * ez)
+        if en == 0.0:
+            continue
+        w, x, y, z = seg_quat[j, 0], seg_quat[j, 1], seg_quat[j, 2], seg_quat[j, 3]
+        dx, dy, dz = 2.0 * (x * z + w * y), 2.0 * (y * z - w * x), 1.0 - 2.0 * (x * x + y * y)  # d3(q)
+        ex, ey, ez = ex / en, ey / en, ez / en
+        cx, cy, cz = dy * ez - dz * ey, dz * ex - dx * ez, dx * ey - dy * ex  # d3 x edge
+        s = np.sqrt(cx * cx + cy * cy + cz * cz)
+        c = dx * ex + dy * ey + dz * ez
+        if s < 1.0e-15 and c > 0.0:
+            continue
+        if s < 1.0e-15:  # antiparallel: half turn about an axis perpendicular to d3
+            ax, ay, az = (dz, 0.0, -dx) if abs(dy) > 0.5 else (-dy, dx, 0.0)
+            an = np.sqrt(ax * ax + ay * ay + az * az)
+            theta[0], theta[1], theta[2] = np.pi * ax / an, np.pi * ay / an, np.pi * az / an
+        else:
+            angle = np.arctan2(s, c) / s
+            theta[0], theta[1], theta[2] = cx * angle, cy * angle, cz * angle
+        quat_turn_into(seg_quat[j], theta, seg_quat[j])
+
+
+@njit(cache=True)
+def _relative_rotation_vector(q, q0, out):
+    """Write the rotation vector (rad, world) of ``q conj(q0)`` into ``out`` (3,), the short way."""
+    w = q[0] * q0[0] + q[1] * q0[1] + q[2] * q0[2] + q[3] * q0[3]
+    x = -q[0] * q0[1] + q[1] * q0[0] - q[2] * q0[3] + q[3] * q0[2]
+    y = -q[0] * q0[2] + q[1] * q0[3] + q[2] * q0[0] - q[3] * q0[1]
+    z = -q[0] * q0[3] - q[1] * q0[2] + q[2] * q0[1] + q[3] * q0[0]
+    if w < 0.0:
+        w, x, y, z = -w, -x, -y, -z
+    s = np.sqrt(x * x + y * y + z * z)
+    if s < 1.0e-300:
+        out[0], out[1], out[2] = 0.0, 0.0, 0.0
+        return
+    f = 2.0 * np.arctan2(s, w) / s
+    out[0], out[1], out[2] = x * f, y * f, z * f
+
+
+@njit(cache=True)
+def assemble_rod_system(node_pos, seg_quat, rod, needle, start, frames, contacts, system, lam, needle_pos, needle_quat,
+                        dt):  # fmt: skip
+    """Linearise all rod constraints at the current configuration into the block-tridiagonal XPBD system.
+
+    Rows (see :class:`~suture_gym.sim.rod.RodWork`): attachment ``C = x_0 - (p_needle + R s_swage)`` (rigid),
+    stretch-shear and bend-twist per segment, and a one-sided contact ``C = gap_i`` along ``contact_normal[i]``
+    for node i, active while the node penetrates (``contact_gap[i] < 0``) or already pushes
+    (``lam[i, 6] > 0``). Unused rows carry an identity diagonal and a zero right-hand side.
+
+    Outputs (argument groups in the module docstring): Jacobian pieces ``seg_rot``, ``seg_s`` (= [d3]x),
+    ``seg_winv``, ``bend_b``, frame residuals ``seg_h``, ``att_r``, ``att_winv``, ``contact_active``, and
+    ``diag``, ``lower`` (N, 7, 7), ``rhs`` (N, 7) = ``-C - alpha~ lambda + J_theta h``, ``alpha~ = alpha/dt^2``;
+    ``lam`` (N, 7) holds the multipliers so far, ``needle_pos`` (3,) m and ``needle_quat`` (4,) the needle's pose.
+
+    Frame "mass": the frames are nearly massless, so their block uses inertia plus the geometric stiffness of
+    the stretch-shear rows, ``|lambda_ss| (I - d3 d3^T)`` (a bound on the lambda-weighted Hessian of
+    ``-d3(theta)``; the previous substep's value stands in while this substep's multipliers build up), and
+    keeps their Newton residual ``h = W (I dtheta - J_theta^T lambda)`` in the right-hand side, so the
+    stiffness shapes the steps but not the solution. Without it Newton steps on the frames diverge under load.
+
+    Returns the largest residual before the solve, dimensionless: ``|C + alpha~ lambda|`` (strain for
+    stretch-shear, half-angle for bend-twist, gap / segment length for attachment and contacts) and
+    ``1e-3 |h|`` (h in rad, see :data:`_FRAME_RESIDUAL_WEIGHT`).
+    """
+    diag, lower, _, rhs = system[:4]
+    diag[:] = 0.0
+    lower[:] = 0.0
+    rhs[:] = 0.0
+    residual = _frame_blocks(seg_quat, rod[2], start, frames, lam, 0.0)
+    residual = _attachment_block(node_pos, rod, needle, frames, system, needle_pos, needle_quat, residual)
+    residual = _segment_blocks(node_pos, seg_quat, rod, needle[0], frames, system, lam, dt, residual)
+    return _contact_rows(rod, needle[0], contacts, system, lam, residual)
+
+
+@njit(cache=True)
+def _frame_blocks(seg_quat, seg_inv_inertia, start, frames, lam, residual):
+    """Frame Jacobians (``seg_rot``, ``seg_s``, ``bend_b``), inverse "mass" ``W_j`` and Newton residual
+    ``h_j = W_j (I_j dtheta_j - (J_theta^T lambda)_j)`` of every segment frame; returns ``residual`` raised to
+    the frames' weighted ``|h|``."""
+    seg_quat_start, seg_tension_prev = start
+    seg_rot, seg_s, seg_winv, bend_b, seg_h = frames[:5]
+    nseg = seg_quat.shape[0]
+    tmp = np.empty((3, 3))
+    inertia = np.empty(3)
+    winv_mod = np.empty(3)
+    g = np.empty(3)
+    dth = np.empty(3)
+    for j in range(nseg):
+        quat_to_matrix_into(seg_quat[j], seg_rot[j])
+        _skew_into(seg_rot[j, 0, 2], seg_rot[j, 1, 2], seg_rot[j, 2, 2], seg_s[j])
+    for j in range(nseg - 1):
+        _bend_twist_jacobian_into(seg_quat[j], seg_quat[j + 1], seg_rot[j], bend_b[j])
+    _frame_torque(lam, seg_s, bend_b, seg_h)
+    for j in range(nseg):
+        rj = seg_rot[j]
+        if not (seg_inv_inertia[j, 0] > 0.0 and seg_inv_inertia[j, 1] > 0.0 and seg_inv_inertia[j, 2] > 0.0):
+            seg_winv[j] = 0.0
+            seg_h[j] = 0.0
+            continue
+        stiff = max(np.sqrt(lam[j + 1, 0] ** 2 + lam[j + 1, 1] ** 2 + lam[j + 1, 2] ** 2), seg_tension_prev[j])
+        for i in range(3):
+            inertia[i] = 1.0 / seg_inv_inertia[j, i]
+        winv_mod[0] = 1.0 / (inertia[0] + stiff)
+        winv_mod[1] = 1.0 / (inertia[1] + stiff)
+        winv_mod[2] = seg_inv_inertia[j, 2]
+        _rot_diag_into(rj, winv_mod, 1.0, seg_winv[j])
+        _rot_diag_into(rj, inertia, 1.0, tmp)
+        _relative_rotation_vector(seg_quat[j], seg_quat_start[j], dth)
+        for i in range(3):
+            g[i] = -seg_h[j, i]
+        _mv_acc(tmp, dth, 1.0, g)
+        seg_h[j] = 0.0
+        _mv_acc(seg_winv[j], g, 1.0, seg_h[j])
+        residual = max(residual, _FRAME_RESIDUAL_WEIGHT * max(abs(seg_h[j, 0]), abs(seg_h[j, 1]), abs(seg_h[j, 2])))
+    return residual
+
+
+@njit(cache=True)
+def _attachment_block(node_pos, rod, needle, frames, system, needle_pos, needle_quat, residual):
+    """Block 0: the attachment of node 0 to the needle swage (rows 0-2; identity rows without a needle) and the
+    unused rows 3-5. Writes ``att_r``, ``att_winv``; returns ``residual`` raised to the attachment's."""
+    node_inv_mass, seg_rest_length = rod[0], rod[1]
+    has_needle, needle_inv_mass, needle_inv_inertia_body, swage_body = needle
+    att_r, att_winv = frames[5], frames[6]
+    diag, rhs = system[0], system[3]
+    if has_needle:
+        tmp = np.empty((3, 3))
+        tmp2 = np.empty((3, 3))
+        rn = np.empty((3, 3))
+        quat_to_matrix_into(needle_quat, rn)
+        _ab_into(rn, needle_inv_inertia_body, tmp)
+        att_winv[:] = 0.0
+        _abt_acc(tmp, rn, 1.0, att_winv)
+        att_r[:] = 0.0
+        _mv_acc(rn, swage_body, 1.0, att_r)
+        _skew_into(att_r[0], att_r[1], att_r[2], tmp2)
+        _ab_into(tmp2, att_winv, tmp)
+        _abt_acc(tmp, tmp2, 1.0, diag[0, :3, :3])
+        for i in range(3):
+            diag[0, i, i] += node_inv_mass[0] + needle_inv_mass
+            rhs[0, i] = -(node_pos[0, i] - needle_pos[i] - att_r[i])
+            residual = max(residual, abs(rhs[0, i]) / seg_rest_length[0])
+    else:
+        for i in range(3):
+            diag[0, i, i] = 1.0
+    for i in range(3, 6):
+        diag[0, i, i] = 1.0
+    return residual
+
+
+@njit(cache=True)
+def _segment_blocks(node_pos, seg_quat, rod, has_needle, frames, system, lam, dt, residual):
+    """Blocks 1..N-1: the stretch-shear rows of segment j and the bend-twist rows of segments j, j+1 in block
+    j+1, and their coupling with block j through ``x_j`` (and ``q_j``); returns ``residual`` raised to theirs."""
+    node_inv_mass, seg_rest_length, _, seg_stretch_compliance, bend_compliance = rod[:5]
+    seg_rot, seg_s, seg_winv, bend_b, seg_h = frames[:5]
+    diag, lower, _, rhs = system[:4]
+    nseg = seg_quat.shape[0]
+    inv_dt2 = 1.0 / (dt * dt)
+    tmp = np.empty((3, 3))
+    tmp2 = np.empty((3, 3))
+    tmp3 = np.empty((3, 3))
+    for j in range(nseg):
+        b = j + 1
+        l = seg_rest_length[j]
+        s = seg_s[j]
+        winv = seg_winv[j]
+        rj = seg_rot[j]
+        # stretch-shear rows
+        _rot_diag_into(rj, seg_stretch_compliance[j], inv_dt2, tmp3)  # alpha~_ss, world frame
+        _ab_into(s, winv, tmp)  # tmp = [d3]x W_j
+        d_ss = diag[b, :3, :3]
+        _abt_acc(tmp, s, 1.0, d_ss)
+        w_sum = (node_inv_mass[j] + node_inv_mass[j + 1]) / (l * l)
+        for i in range(3):
+            val = -((node_pos[j + 1, i] - node_pos[j, i]) / l - rj[i, 2])
+            hterm = 0.0
+            d_ss[i, i] += w_sum
+            for k in range(3):
+                d_ss[i, k] += tmp3[i, k]
+                val -= tmp3[i, k] * lam[b, k]
+                hterm += s[i, k] * seg_h[j, k]
+            rhs[b, i] = val + hterm
+            residual = max(residual, abs(val))
+        if j < nseg - 1:
+            residual = _bend_rows(j, seg_quat, bend_compliance, frames, diag, rhs, lam, inv_dt2, tmp, residual)
+        else:
+            for i in range(3, 6):
+                diag[b, i, i] = 1.0
+        # coupling with the previous block through x_j (and q_j)
+        if j == 0:
+            if has_needle:
+                for i in range(3):
+                    lower[1, i, i] = -node_inv_mass[0] / l
+        else:
+            lp = seg_rest_length[j - 1]
+            for i in range(3):
+                lower[b, i, i] = -node_inv_mass[j] / (l * lp)
+            bp = bend_b[j - 1]
+            _abt_acc(tmp, bp, 1.0, lower[b, :3, 3:6])
+            if j < nseg - 1:
+                _ab_into(bend_b[j], winv, tmp2)
+                _abt_acc(tmp2, bp, -1.0, lower[b, 3:6, 3:6])
+    return residual
+
+
+@njit(cache=True)
+def _bend_rows(j, seg_quat, bend_compliance, frames, diag, rhs, lam, inv_dt2, tmp, residual):
+    """The bend-twist rows of segments j, j+1 in block j+1 (``tmp`` holds ``[d3_j]x W_j``); returns
+    ``residual`` raised to theirs."""
+    seg_winv, bend_b, seg_h = frames[2], frames[3], frames[4]
+    b = j + 1
+    bj = bend_b[j]
+    tmp2 = np.empty((3, 3))
+    tmp3 = np.empty((3, 3))
+    for i in range(3):
+        for k in range(3):
+            tmp2[i, k] = seg_winv[j, i, k] + seg_winv[j + 1, i, k]
+    _ab_into(bj, tmp2, tmp3)
+    _abt_acc(tmp3, bj, 1.0, diag[b, 3:6, 3:6])
+    _abt_acc(tmp, bj, -1.0, diag[b, :3, 3:6])
+    c_bt = bend_twist_constraint(seg_quat[j], seg_quat[j + 1])
+    for i in range(3):
+        a_i = bend_compliance[j, i] * inv_dt2
+        diag[b, 3 + i, 3 + i] += a_i
+        val = -c_bt[i] - a_i * lam[b, 3 + i]
+        hterm = 0.0
+        for k in range(3):
+            hterm += bj[i, k] * (seg_h[j + 1, k] - seg_h[j, k])
+            diag[b, 3 + i, k] = diag[b, k, 3 + i]
+        rhs[b, 3 + i] = val + hterm
+        residual = max(residual, abs(val))
+    return residual
+
+
+@njit(cache=True)
+def _contact_rows(rod, has_needle, contacts, system, lam, residual):
+    """Row 6 of block i: node i's one-sided contact, active while it penetrates or already pushes, coupled to
+    the stretch-shear (or attachment) rows through ``x_i``; returns ``residual`` raised to the gaps'."""
+    node_inv_mass, seg_rest_length = rod[0], rod[1]
+    contact_gap, contact_normal, contact_active = contacts[:3]
+    diag, lower, _, rhs = system[:4]
+    n = node_inv_mass.shape[0]
+    nseg = n - 1
+    for i in range(n):
+        w = node_inv_mass[i]
+        gap = contact_gap[i]
+        active = w > 0.0 and np.isfinite(gap) and (gap < 0.0 or lam[i, 6] > 0.0)
+        contact_active[i] = active
+        if not active:
+            diag[i, 6, 6] = 1.0
+            continue
+        nrm = contact_normal[i]
+        diag[i, 6, 6] = w
+        rhs[i, 6] = -gap
+        scale = seg_rest_length[i - 1] if i >= 1 else seg_rest_length[0]
+        residual = max(residual, abs(gap) / scale)
+        if i >= 1:  # stretch-shear of segment i-1 (same block): dC_ss/dx_i = I / l_{i-1}
+            for k in range(3):
+                diag[i, 6, k] = w * nrm[k] / seg_rest_length[i - 1]
+                diag[i, k, 6] = diag[i, 6, k]
+        elif has_needle:  # attachment: dC_att/dx_0 = I
+            for k in range(3):
+                diag[0, 6, k] = w * nrm[k]
+                diag[0, k, 6] = diag[0, 6, k]
+        if i < nseg:  # stretch-shear of segment i (next block): dC_ss/dx_i = -I / l_i
+            for k in range(3):
+                lower[i + 1, k, 6] = -w * nrm[k] / seg_rest_length[i]
+    return residual
+
+
+@njit(cache=True)
+def _frame_torque(mult, seg_s, bend_b, out):
+    """``out[j] = (J_theta^T mult)_j`` (N-1, 3): generalised torque impulse of multipliers ``mult`` (N, 7) on
+    each segment frame, from its stretch-shear rows and the bend-twist rows on either side."""
+    nseg = out.shape[0]
+    out[:] = 0.0
+    for j in range(nseg):
+        _mtv_acc(seg_s[j], mult[j + 1, :3], 1.0, out[j])
+        if j < nseg - 1:
+            _mtv_acc(bend_b[j], mult[j + 1, 3:6], -1.0, out[j])
+        if j >= 1:
+            _mtv_acc(bend_b[j - 1], mult[j, 3:6], 1.0, out[j])
+
+
+@njit(cache=True)
+def release_contact(i, lam_c, contact_active, diag, lower, rhs):
+    """Take node i's contact row out of the system with its step fixed at ``-lam_c`` (its whole push undone).
+
+    The fixed step's effect on the coupled stretch-shear/attachment rows moves to their right-hand side, then
+    the row becomes an identity row with right-hand side ``-lam_c``. Updates ``contact_active``, ``diag``,
+    ``lower``, ``rhs``.
+    """
+    contact_active[i] = False
+    for k in range(6):
+        rhs[i, k] += diag[i, k, 6] * lam_c
+        diag[i, k, 6] = 0.0
+        diag[i, 6, k] = 0.0
+    if i + 1 < diag.shape[0]:
+        for k in range(7):
+            rhs[i + 1, k] += lower[i + 1, k, 6] * lam_c
+            lower[i + 1, k, 6] = 0.0
+    diag[i, 6, 6] = 1.0
+    rhs[i, 6] = -lam_c
+
+
+@njit(cache=True)
+def apply_rod_solution(rod, needle, frames, contacts, z, lam, node_pos, seg_quat, needle_pos, needle_quat):
+    """Apply multiplier steps ``z`` (N, 7): ``dx = M^-1 J^T z`` to nodes, ``dtheta = W J^T z - h`` to frames
+    (exact exponential map), and the attachment impulse ``-z[0, :3]`` to the needle (rigid XPBD).
+
+    ``z`` is added to ``lam``. Updates ``node_pos`` (N, 3), ``seg_quat`` (N-1, 4), ``needle_pos`` (3,),
+    ``needle_quat`` (4,), and adds contact pushes (m) to ``contact_push`` (argument groups in the module
+    docstring).
+    """
+    node_inv_mass, seg_rest_length = rod[0], rod[1]
+    has_needle, needle_inv_mass = needle[0], needle[1]
+    _, seg_s, seg_winv, bend_b, seg_h, att_r, att_winv = frames
+    _, contact_normal, _, contact_push = contacts
+    n = node_pos.shape[0]
+    nseg = n - 1
+    lam += z
+    for i in range(n):
+        w = node_inv_mass[i]
+        if w == 0.0:
+            continue
+        for k in range(3):
+            dx = z[i, 6] * contact_normal[i, k]
+            contact_push[i, k] += w * dx
+            if i == 0 and has_needle:
+                dx += z[0, k]
+            if i >= 1:
+                dx += z[i, k] / seg_rest_length[i - 1]
+            if i < nseg:
+                dx -= z[i + 1, k] / seg_rest_length[i]
+            node_pos[i, k] += w * dx
+    t = np.empty((nseg, 3))
+    _frame_torque(z, seg_s, bend_b, t)
+    dtheta = np.empty(3)
+    for j in range(nseg):
+        dtheta[:] = -seg_h[j]
+        _mv_acc(seg_winv[j], t[j], 1.0, dtheta)
+        if dtheta[0] != 0.0 or dtheta[1] != 0.0 or dtheta[2] != 0.0:  # clamped frames stay bit-exact
+            quat_turn_into(seg_quat[j], dtheta, seg_quat[j])
+    if has_needle:
+        p = -z[0, :3]
+        needle_pos += needle_inv_mass * p
+        dtheta[:] = 0.0
+        _mv_acc(att_winv, np.cross(att_r, p), 1.0, dtheta)
+        quat_turn_into(needle_quat, dtheta, needle_quat)
+
+
+@njit(cache=True)
+def rod_iteration_kernel(rod, needle, start, frames, contacts, system, lam, node_pos, seg_quat, needle_pos,
+                         needle_quat, dt, tolerance):  # fmt: skip
+    """One direct XPBD iteration: align frames, assemble; if the residual exceeds ``tolerance``, solve and
+    apply. Returns the residual before the solve (see :func:`assemble_rod_system`; argument groups in the
+    module docstring).
+
+    ``contact_w`` (``rod[5]``, (N,)) is the obstacle's share of each contact row's generalised inverse mass,
+    ``J M^-1 J^T``: 0 for static obstacles; for a deformable one (a tissue triangle, see
+    :func:`~suture_gym.sim.coupling.suture_contact_rows`) it makes the contact multiplier the two-way XPBD one,
+    and the caller moves the obstacle by its share afterwards.
+    """
+    align_frames(node_pos, rod[2], seg_quat)
+    residual = assemble_rod_system(
+        node_pos, seg_quat, rod, needle, start, frames, contacts, system, lam, needle_pos, needle_quat, dt
+    )
+    if residual <= tolerance:
+        return residual
+    contact_w = rod[5]
+    contact_active = contacts[2]
+    diag, lower, dinv, rhs, y, z = system
+    for i in range(node_pos.shape[0]):
+        if contact_active[i]:
+            diag[i, 6, 6] += contact_w[i]
+    # active-set refinement: contacts whose multiplier would turn negative (pull) are released and the system
+    # re-solved; contacts still pulling after the last pass stay in for this iteration (the solution remains
+    # consistent) and are released by the next iteration's activation rule.
+    solve_block_tridiagonal(diag, lower, rhs, dinv, y, z)
+    for _ in range(_MAX_RELEASE_PASSES):
+        released = False
+        for i in range(node_pos.shape[0]):
+            if contact_active[i] and lam[i, 6] + z[i, 6] < 0.0:
+                release_contact(i, lam[i, 6], contact_active, diag, lower, rhs)
+                released = True
+        if not released:
+            break
+        solve_block_tridiagonal(diag, lower, rhs, dinv, y, z)
+    apply_rod_solution(rod, needle, frames, contacts, z, lam, node_pos, seg_quat, needle_pos, needle_quat)
+    return residual
+
+
+@njit(cache=True)
+def tension_from_multipliers(lam, out):
+    """``out[j] = |lam[j+1, :3]|`` (N-1,): size of the stretch-shear multipliers (kg m^2) of segment j."""
+    for j in range(out.shape[0]):
+        out[j] = np.sqrt(lam[j + 1, 0] ** 2 + lam[j + 1, 1] ** 2 + lam[j + 1, 2] ** 2)
