@@ -165,3 +165,35 @@ def test_every_id_documents_itself(env_id):
     assert f"{task.MAX_EPISODE_STEPS} steps" in cls.__doc__
     assert cls.TASK == task.NAME and cls().config.task == task.NAME
     env.close()
+
+
+
+class GentleTouch(TouchEntry):
+    """TouchEntry that fails as soon as the needle moves faster than ``MAX_SPEED`` (a task's own termination
+    rule, through the ``failure`` hook)."""
+
+    NAME, ENV_ID = "gentle_touch", "SutureGymTest/GentleTouch-v0"
+    MAX_SPEED = 2.0e-3  # m/s
+
+    def failure(self, obs: Observables, outside: bool, missed: bool) -> bool:
+        return super().failure(obs, outside, missed) or float(np.linalg.norm(obs.needle_vel)) > self.MAX_SPEED
+
+
+register_task(GentleTouch)
+
+
+def test_a_task_adds_its_own_failure_through_the_hook():
+    env = gym.make(GentleTouch.ENV_ID)
+    env.reset(seed=0)
+    sim = env.unwrapped.sim
+    speeds = []
+    for _ in range(GentleTouch.MAX_EPISODE_STEPS):
+        grip, quat = sim.grip_pose()
+        _, _, terminated, truncated, info = env.step(env.unwrapped.action_toward(grip + [0.0, 0.0, 0.01], quat))
+        speeds.append(float(np.linalg.norm(sim.state.needle.body_vel)))
+        if terminated or truncated:
+            break
+    assert terminated and not truncated and not info["is_success"]
+    assert speeds[-1] > GentleTouch.MAX_SPEED and all(v <= GentleTouch.MAX_SPEED for v in speeds[:-1])
+    assert info["reward_failure"] < 0.0
+    env.close()

@@ -6,7 +6,7 @@ plain arrays, SI units) after every env step, and they return the reward terms a
 the unit of extension: one class declares its env id, time limit and config defaults (``ENV_ID``,
 ``MAX_EPISODE_STEPS``, ``CONFIG``, an optional section of its own, ``PARAMS``), its reward terms (one
 ``term_<name>(ctx)`` method per name in ``TERMS``, reading the :class:`StepContext` of the step), its config
-check, episode initialisation (``initial_suture``, ``start_phase``) and success; one
+check, episode initialisation (``initial_suture``, ``start_phase``) and termination (``success``, ``failure``); one
 :func:`~suture_gym.envs.registry.register_task` line registers it.
 
 Reward terms (each reported as ``info["reward_<name>"]``; a task uses a subset, in the order of its ``TERMS``;
@@ -388,7 +388,7 @@ class Task(ABC):
         st.succeeded = st.succeeded or success
         outside = bool(np.any(obs.tip_pos < self.workspace[0]) or np.any(obs.tip_pos > self.workspace[1]))
         missed = self.missed()
-        failed = not success and (outside or (obs.damaged and self.end_on_tear) or (missed and self.end_on_miss))
+        failed = not success and self.failure(obs, outside, missed)
         if failed:
             # A failing end is absorbing and its shaping potential is 0 (Ng et al. 1999): the progress banked on
             # the way is handed back (term_progress), so ending an episode early can never pay.
@@ -454,6 +454,13 @@ class Task(ABC):
     def term_action(self, ctx: StepContext) -> float:
         """``-w_action mean(a^2)`` of the raw action."""
         return -self.reward.action * float(np.mean(np.square(ctx.action)))
+
+    def failure(self, obs: Observables, outside: bool, missed: bool) -> bool:
+        """Termination hook: whether the step that led to ``obs`` ends the episode as a failure (asked only when
+        it did not succeed). By default the tip left the workspace (``outside``), the tissue tore (with
+        ``termination.end_on_tear``) or the task can no longer succeed (``missed``, with
+        ``termination.end_on_miss``). A task with a failure of its own overrides this and calls ``super()``."""
+        return outside or (obs.damaged and self.end_on_tear) or (missed and self.end_on_miss)
 
     def missed(self) -> bool:
         """Whether the current stitch was entered or exited farther than ``access_tolerance`` from the plan, in a
