@@ -161,7 +161,7 @@ class _StitchProbe:
 
     def __call__(self, scene: Scene, t: float) -> None:
         model, state = scene.model, scene.state
-        work = model.scratch.coupling_work
+        work = state.work.coupling_work
         nn = model.coupling.needle_node_count
         x = strand_now(scene)
         q = state.tissue.particle_q
