@@ -1,4 +1,4 @@
-"""Evaluate a policy: random, the scripted expert, or a saved model (DESIGN.md section 6).
+"""Evaluate a policy: random, the scripted expert, or a saved model (docs/design.md section 8).
 
 Usage::
 

@@ -211,8 +211,8 @@ def two_bar_wound(
     ``y in [0, width]``, the right bar ``y in [width + gap, 2 width + gap]``; both span ``x in [0, length]``
     and ``z in [0, height]``. The wound is the gap between the faces ``y = width`` and ``y = width + gap``.
     Both end faces (``x = 0`` and ``x = length``) of each bar are pinned, as in the paper; with ``base`` the
-    bottom faces (``z = 0``) are pinned too, i.e. the tissue rests on a rigid base (DESIGN.md section 4:
-    the default 1 kPa tissue would otherwise sag by about its own height).
+    bottom faces (``z = 0``) are pinned too, i.e. the tissue rests on a rigid base (docs/design.md, "Departures
+    from the brief": the default 1 kPa tissue would otherwise sag by about its own height).
 
     Regions: ``left_wound_face``, ``right_wound_face`` (the facing long faces), ``left_bar``, ``right_bar``
     (all particles of each bar), ``top`` (the ``z = height`` faces), ``pinned``.
