@@ -1,9 +1,9 @@
 """Needle and suture checks against analytic references, and the needle + suture benchmark.
 
 Every check builds its models from the library defaults (:class:`~suture_gym.sim.needle.NeedleShape`,
-:class:`~suture_gym.sim.rod.SutureParams`) unless its ``settings`` say otherwise, steps them with
-:func:`~suture_gym.sim.rod.step_strands` at the default solver settings (``iterations``, ``tolerance``) and
-records every parameter it used in ``settings``.
+:class:`~suture_gym.sim.rod.SutureParams`) unless its ``settings`` say otherwise, steps needle and suture on
+their own (no tissue) with :meth:`~suture_gym.sim.solver.Solver.step` at the default rod solver settings
+(``iterations``, ``tolerance``) and records every parameter it used in ``settings``.
 """
 
 from __future__ import annotations
@@ -17,15 +17,13 @@ import numpy as np
 from scipy.integrate import solve_ivp
 
 from suture_gym.measure.registry import CheckResult, benchmark, check
+from suture_gym.sim.model import Control, Model, State
 from suture_gym.sim.needle import (
     NeedleModel,
     NeedleShape,
     NeedleState,
     VirtualCoupling,
-    needle_node_positions,
     needle_point_world,
-    needle_predict,
-    needle_update_velocities,
     wrench_at_com,
 )
 from suture_gym.sim.quat import (
@@ -39,26 +37,48 @@ from suture_gym.sim.quat import (
 from suture_gym.sim.rod import (
     RodModel,
     RodState,
-    RodWork,
     StaticObstacles,
     SutureMaterial,
     SutureParams,
-    rod_detect_contacts,
-    rod_predict,
-    rod_project,
-    rod_update_velocities,
     segment_strain,
-    step_strands,
 )
+from suture_gym.sim.solver import Solver
 
 GRAVITY = 9.81  # m/s^2
 DT = 1.0e-3  # s, default substep
-ITERATIONS = 8  # default most direct solves per substep (step_strands' default)
-TOLERANCE = 1.0e-6  # default solver tolerance (step_strands' default)
+ITERATIONS = 8  # default most direct solves per substep (Solver.rod_iterations' default)
+TOLERANCE = 1.0e-6  # default solver tolerance (Solver.rod_tolerance's default)
+#: m/s, the solver's divergence guard; the 45 degree pull of ``suture_stretch_pull`` whips the free end at
+#: ~110 m/s in its first substep, above the 50 m/s default, which would freeze the state as diverged.
+MAX_SPEED = 1.0e3
+SOLVER = Solver(max_speed=MAX_SPEED, rod_iterations=ITERATIONS, rod_tolerance=TOLERANCE)
 
 
 def _solver_settings(dt: float) -> dict:
-    return {"dt_s": dt, "iterations_max": ITERATIONS, "tolerance": TOLERANCE}
+    return {"dt_s": dt, "iterations_max": ITERATIONS, "tolerance": TOLERANCE, "max_speed_m_s": MAX_SPEED}
+
+
+def _strands(
+    gravity: float = GRAVITY,
+    needle: NeedleModel | None = None,
+    needle_state: NeedleState | None = None,
+    suture: RodModel | None = None,
+    suture_state: RodState | None = None,
+    obstacles: StaticObstacles | None = None,
+) -> tuple[Model, State]:
+    """Model of needle and/or suture on their own (no tissue), ``gravity`` m/s^2 along -z, and its initial
+    State holding the given needle and suture states (advanced in place by :data:`SOLVER`)."""
+    model = Model(needle=needle, suture=suture, gravity=(0.0, 0.0, -gravity), obstacles=obstacles)
+    return model, State.initial(model, needle=needle_state, suture=suture_state)
+
+
+def _step(model: Model, state: State, control: Control, dt: float, timings: dict | None = None) -> int:
+    """One :data:`SOLVER` substep (phase times added to ``timings``); returns the number of direct rod solves it
+    used. A diverged state (which the solver would leave frozen) raises instead of being measured."""
+    SOLVER.step(model, state, control, dt, timings=timings)
+    if state.diverged:
+        raise RuntimeError(f"the simulation diverged near t = {state.time:.4f} s")
+    return state.work.rod_solves
 
 
 # ---------------------------------------------------------------------------------------------------------
@@ -124,13 +144,12 @@ def check_needle_free_flight() -> CheckResult:
 
     force, torque_com = wrench_at_com(model, state, wrench)
     alpha_ref = np.linalg.solve(r0 @ model.body_inertia @ r0.T, torque_com)
-    gravity = np.zeros(3)
-    needle_predict(model, state, wrench, dt, gravity)
-    needle_update_velocities(state, dt)
+    system, full = _strands(gravity=0.0, needle=model, needle_state=state)
+    control = Control(needle_wrench=wrench)
+    _step(system, full, control, dt)
     alpha_first = state.body_omega / dt
     for _ in range(steps - 1):
-        needle_predict(model, state, wrench, dt, gravity)
-        needle_update_velocities(state, dt)
+        _step(system, full, control, dt)
 
     reference = NeedleState.at_rest([0.0, 0.0, 0.1], quat0)
     vel_ref, quat_ref, omega_ref = _free_flight_reference(model, reference, wrench, duration)
@@ -193,13 +212,14 @@ def check_suture_stretch_hanging() -> CheckResult:
     params = SutureParams()
     model = RodModel.from_params(params, pinned_nodes=[0])
     state = RodState.straight(model, [0.0, 0.0, 0.3], [1.0, 0.0, 0.0])
-    work = RodWork(model)
+    system, full = _strands(suture=model, suture_state=state)
+    control = Control()
     dt, duration = DT, 1.5
     steps = int(round(duration / dt))
     max_strain = 0.0
     solves = []
     for _ in range(steps):
-        solves.append(step_strands(model, state, work, dt, gravity=(0.0, 0.0, -GRAVITY)))
+        solves.append(_step(system, full, control, dt))
         max_strain = max(max_strain, float(np.abs(segment_strain(model, state)).max()))
     final_strain = float(np.abs(segment_strain(model, state)).max())
     tip = state.node_pos[-1] - state.node_pos[0]
@@ -232,11 +252,10 @@ def _pull_node_force(direction: tuple, duration: float) -> dict:
     params = SutureParams()
     model = RodModel.from_params(params, pinned_nodes=[0])
     state = RodState.straight(model, [0.0, 0.0, 0.3], [0.0, 0.0, -1.0])
-    work = RodWork(model)
     force = np.zeros((model.node_count, 3))
     d = np.asarray(direction, dtype=np.float64)
     force[-1] = d / np.linalg.norm(d)
-    return _run_pull(model, state, work, duration, node_force=force) | {
+    return _run_pull(*_strands(suture=model, suture_state=state), Control(suture_force=force), duration) | {
         "pull": f"1 N on the free end along {d.tolist()}"
     }
 
@@ -255,34 +274,23 @@ def _pull_via_needle(duration: float) -> dict:
     swage = np.array([0.0, 0.0, 0.1])
     needle_state = NeedleState.at_rest(swage - quat_to_matrix(quat) @ needle.swage_pos_body, quat)
     state = RodState.straight(model, swage, [0.0, 0.0, 1.0])
-    work = RodWork(model)
-    wrench = np.array([0.0, 0.0, -1.0, 0.0, 0.0, 0.0])
-    out = _run_pull(model, state, work, duration, needle=needle, needle_state=needle_state, wrench=wrench)
+    control = Control(needle_wrench=np.array([0.0, 0.0, -1.0, 0.0, 0.0, 0.0]))
+    system, full = _strands(needle=needle, needle_state=needle_state, suture=model, suture_state=state)
+    out = _run_pull(system, full, control, duration)
     swage_now = needle_point_world(needle, needle_state, needle.swage_pos_body)
     out["attachment_gap_m"] = float(np.linalg.norm(state.node_pos[0] - swage_now))
     return out | {"pull": "1 N down at the needle grip; needle weight compensated"}
 
 
-def _run_pull(model, state, work, duration, node_force=None, needle=None, needle_state=None, wrench=None) -> dict:
+def _run_pull(system: Model, full: State, control: Control, duration: float) -> dict:
     dt = DT
+    model, state = system.suture, full.suture
     steps = int(round(duration / dt))
     settle_from = int(round(0.75 * steps))
     max_strain = 0.0
     late_strain, late_speed, solves = [], [], []
     for k in range(steps):
-        solves.append(
-            step_strands(
-                model,
-                state,
-                work,
-                dt,
-                gravity=(0.0, 0.0, -GRAVITY),
-                needle_model=needle,
-                needle_state=needle_state,
-                needle_wrench=wrench,
-                node_force=node_force,
-            )
-        )
+        solves.append(_step(system, full, control, dt))
         strain = float(np.abs(segment_strain(model, state)).max())
         max_strain = max(max_strain, strain)
         if k >= settle_from:
@@ -386,10 +394,11 @@ def _cantilever_run(dt: float) -> tuple[np.ndarray, RodModel, dict]:
     params = SutureParams(length=c["length_m"], node_count=c["node_count"], damping=c["damping_per_s"])
     model = RodModel.from_params(params, pinned_nodes=[0], clamped_segments=[0])
     state = RodState.straight(model, [0.0, 0.0, 0.0], [1.0, 0.0, 0.0])
-    work = RodWork(model)
+    system, full = _strands(suture=model, suture_state=state)
+    control = Control()
     steps = int(round(c["duration_s"] / dt))
     for _ in range(steps):
-        step_strands(model, state, work, dt, gravity=(0.0, 0.0, -GRAVITY))
+        _step(system, full, control, dt)
     info = {
         "final_max_node_speed_m_s": float(np.abs(state.node_vel).max()),
         "final_max_strain": float(np.abs(segment_strain(model, state)).max()),
@@ -463,6 +472,7 @@ def check_rod_dt_independence() -> CheckResult:
             "dts_s": list(dts),
             "iterations_max": ITERATIONS,
             "tolerance": TOLERANCE,
+            "max_speed_m_s": MAX_SPEED,
             "gravity_m_s2": GRAVITY,
         },
         details={
@@ -482,8 +492,10 @@ def check_rod_dt_independence() -> CheckResult:
 def bench_strands() -> dict:
     """Needle (30 nodes) held 5 cm above a ground plane by the virtual coupling, 200-node suture hanging from
     it with about a quarter of its length lying on the ground (nylon 3-0 is stiff over a few cm), one 1 ms
-    substep at default settings (median of 500 after a 1 s settle). Phases timed: prediction, contact
-    detection (collision), direct solve incl. velocity update (solver)."""
+    substep (coupling wrench + :meth:`~suture_gym.sim.solver.Solver.step`) at default settings (median of 500
+    after a 1 s settle). Fractions from the solver's phase timings: ``collision_fraction`` its detect phase
+    (tissue coupling only, nothing here: the ground contacts are detected before each rod iteration, inside
+    the projection), ``solver_fraction`` projection (direct solve incl. ground contacts) and velocity update."""
     dt = DT
     needle = NeedleModel.from_shape()
     rod = RodModel.from_params()
@@ -492,26 +504,23 @@ def bench_strands() -> dict:
     quat = np.array([1.0, 0.0, 0.0, 0.0])
     needle_state = NeedleState.from_grip_pose(needle, grip_target, quat)
     swage = needle_point_world(needle, needle_state, needle.swage_pos_body)
-    state = RodState.straight(rod, swage, [0.0, 0.3, -1.0])
-    work = RodWork(rod)
     ground = StaticObstacles.ground(0.0)
-    gravity = np.array([0.0, 0.0, -GRAVITY])
-    nodes = np.empty((needle.node_count, 3))
+    system, full = _strands(
+        needle=needle,
+        needle_state=needle_state,
+        suture=rod,
+        suture_state=RodState.straight(rod, swage, [0.0, 0.3, -1.0]),
+        obstacles=ground,
+    )
+    control = Control()
 
     def substep() -> tuple[float, float, float, int]:
+        timings: dict = {}
         t0 = time.perf_counter()
-        wrench = coupling.wrench(needle, needle_state, grip_target, quat)
-        needle_predict(needle, needle_state, wrench, dt, gravity)
-        rod_predict(rod, state, dt, gravity)
-        t1 = time.perf_counter()
-        needle_node_positions(needle, needle_state, nodes)
-        rod_detect_contacts(rod, state, work, ground)
-        t2 = time.perf_counter()
-        solves = rod_project(rod, state, work, dt, ITERATIONS, TOLERANCE, needle, needle_state, ground)
-        rod_update_velocities(state, work, dt, ground.friction)
-        needle_update_velocities(needle_state, dt)
-        t3 = time.perf_counter()
-        return t3 - t0, t2 - t1, t3 - t2, solves
+        control.needle_wrench = coupling.wrench(needle, needle_state, grip_target, quat)
+        solves = _step(system, full, control, dt, timings)
+        total = time.perf_counter() - t0
+        return total, timings["detect"], timings["project"] + timings["velocities"], solves
 
     for _ in range(1000):
         substep()
@@ -529,7 +538,7 @@ def bench_strands() -> dict:
         "collision_fraction": float(detect.sum() / total.sum()),
         "solver_fraction": float(solve.sum() / total.sum()),
         "mean_solves_per_substep": float(np.mean([s[3] for s in samples])),
-        "contact_nodes_at_end": int(np.count_nonzero(work.contact_active)),
+        "contact_nodes_at_end": int(np.count_nonzero(full.work.rod_work.contact_active)),
         "dt_s": dt,
         "iterations_max": ITERATIONS,
         "tolerance": TOLERANCE,
