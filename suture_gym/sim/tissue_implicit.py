@@ -33,14 +33,13 @@ body at static equilibrium, so a resting body stays at rest for any ``h``):
   is affine in each node), which is always SPD; Chebyshev acceleration over the sweeps (Wang 2015).
 
 Coupling rows (needle, suture) that move tissue nodes after the elastic solve see the tissue through
-:meth:`ImplicitTissue.row_inv_mass` (the diagonal of the substep's compliance ``h^2 A0^-1``, not the bare
+:meth:`ImplicitTissue.row_inv_mass` (the diagonal of the substep's compliance ``A0^-1 / h^2``, not the bare
 ``1 / m``) and their corrections are spread over the tissue by :meth:`ImplicitTissue.propagate_rows`
 (one solve with ``A0``): the linearised implicit response to the rows' impulses.
 """
 
 from __future__ import annotations
 
-import math
 import warnings
 import weakref
 
@@ -95,6 +94,20 @@ def _tet_f(q: np.ndarray, nodes: np.ndarray, g: np.ndarray, f: np.ndarray) -> No
 
 
 @njit(cache=True)
+def _stress(f: np.ndarray, mu: float, lam: float, cof: np.ndarray, p_out: np.ndarray) -> float:
+    """:func:`stable_neo_hookean_stress` with a caller-owned ``(3, 3)`` scratch ``cof`` (no allocation)."""
+    gamma = 1.0 + mu / lam
+    det = _cofactor(f, cof)
+    s = lam * (det - gamma)
+    norm2 = 0.0
+    for i in range(3):
+        for j in range(3):
+            norm2 += f[i, j] * f[i, j]
+            p_out[i, j] = mu * f[i, j] + s * cof[i, j]
+    return 0.5 * mu * (norm2 - 3.0) + 0.5 * lam * ((det - gamma) ** 2 - (1.0 - gamma) ** 2)
+
+
+@njit(cache=True)
 def stable_neo_hookean_stress(f: np.ndarray, mu: float, lam: float, p_out: np.ndarray) -> float:
     """Energy density and first Piola-Kirchhoff stress of the stable neo-Hookean material.
 
@@ -107,16 +120,7 @@ def stable_neo_hookean_stress(f: np.ndarray, mu: float, lam: float, p_out: np.nd
     Returns:
         ``Psi(F)``, J/m^3, zero at ``F = I`` (see the module docstring).
     """
-    gamma = 1.0 + mu / lam
-    cof = np.empty((3, 3))
-    det = _cofactor(f, cof)
-    s = lam * (det - gamma)
-    norm2 = 0.0
-    for i in range(3):
-        for j in range(3):
-            norm2 += f[i, j] * f[i, j]
-            p_out[i, j] = mu * f[i, j] + s * cof[i, j]
-    return 0.5 * mu * (norm2 - 3.0) + 0.5 * lam * ((det - gamma) ** 2 - (1.0 - gamma) ** 2)
+    return _stress(f, mu, lam, np.empty((3, 3)), p_out)
 
 
 @njit(cache=True)
@@ -207,23 +211,33 @@ def incremental_potential(
                 total += 0.5 * mass[p] * inv_h2 * d * d
             else:
                 grad_out[p, i] = 0.0
-    g = np.empty((4, 3))
     f = np.empty((3, 3))
+    cof = np.empty((3, 3))
     stress = np.empty((3, 3))
     for n in range(tets.shape[0]):
         t = tets[n]
-        nodes = tet_indices[t]
-        _shape_gradients(tet_dm_inv[t], g)
-        _tet_f(q, nodes, g, f)
+        n0, n1, n2, n3 = tet_indices[t, 0], tet_indices[t, 1], tet_indices[t, 2], tet_indices[t, 3]
+        dm = tet_dm_inv[t]
+        for i in range(3):
+            x0 = q[n0, i]
+            d1, d2, d3 = q[n1, i] - x0, q[n2, i] - x0, q[n3, i] - x0
+            for j in range(3):
+                f[i, j] = d1 * dm[0, j] + d2 * dm[1, j] + d3 * dm[2, j]
         volume = tet_rest_volume[t]
-        total += volume * stable_neo_hookean_stress(f, tet_mu[t], tet_lambda[t], stress)
-        for k in range(4):
-            p = nodes[k]
-            for i in range(3):
-                if free[p, i]:
-                    grad_out[p, i] += volume * (
-                        stress[i, 0] * g[k, 0] + stress[i, 1] * g[k, 1] + stress[i, 2] * g[k, 2]
-                    )
+        total += volume * _stress(f, tet_mu[t], tet_lambda[t], cof, stress)
+        for i in range(3):
+            p0, p1, p2 = volume * stress[i, 0], volume * stress[i, 1], volume * stress[i, 2]
+            g1 = p0 * dm[0, 0] + p1 * dm[0, 1] + p2 * dm[0, 2]
+            g2 = p0 * dm[1, 0] + p1 * dm[1, 1] + p2 * dm[1, 2]
+            g3 = p0 * dm[2, 0] + p1 * dm[2, 1] + p2 * dm[2, 2]
+            if free[n1, i]:
+                grad_out[n1, i] += g1
+            if free[n2, i]:
+                grad_out[n2, i] += g2
+            if free[n3, i]:
+                grad_out[n3, i] += g3
+            if free[n0, i]:
+                grad_out[n0, i] -= g1 + g2 + g3
     return total
 
 
@@ -393,7 +407,8 @@ def _free_dofs(tissue) -> np.ndarray:
 
 class ImplicitTissue:
     """Per-(tissue, dt) data of an implicit integrator: free dofs, the factorised ``A0 = M/h^2 + K0`` and
-    the buffers of a substep. Built by :func:`implicit_tissue`, cached outside the frozen model.
+    the buffers of a substep. Built by :func:`implicit_tissue`, cached outside the frozen model; it holds the
+    tissue model weakly (the caller keeps the model alive).
 
     Attributes:
         free: ``(N, 3) bool`` free degrees of freedom.
@@ -447,7 +462,7 @@ class ImplicitTissue:
 
     def row_inv_mass(self) -> np.ndarray:
         """``(N,)`` inverse masses (1/kg) for coupling rows: the mean of the three diagonal entries of the
-        substep compliance ``h^2 A0^-1`` of each particle (``1/m`` for a particle without stiffness), 0 for
+        substep compliance ``A0^-1 / h^2`` of each particle (``1/m`` for a particle without stiffness), 0 for
         pinned particles. Computed once per integrator (one solve per free dof, batched)."""
         if self._row_inv_mass is None:
             n_free = self.free_index.size
@@ -459,7 +474,7 @@ class ImplicitTissue:
                 rhs[np.arange(start, stop), np.arange(stop - start)] = 1.0
                 diag[start:stop] = self.factor.solve(rhs)[np.arange(start, stop), np.arange(stop - start)]
             full = np.zeros(3 * self.tissue.particle_count)
-            full[self.free_index] = diag * self.dt * self.dt
+            full[self.free_index] = diag * self.inv_h2
             per_axis = full.reshape(-1, 3)
             count = np.maximum(self.free.sum(axis=1), 1)
             self._row_inv_mass = per_axis.sum(axis=1) / count
@@ -467,15 +482,16 @@ class ImplicitTissue:
 
     def propagate_rows(self, q_before: np.ndarray, q: np.ndarray) -> None:
         """Spread the coupling rows' corrections over the tissue: with ``d = q - q_before`` (non-zero only at
-        the nodes the rows moved, each by ``w_eff p``), set ``q = q_before + h^2 A0^-1 p`` on the free dofs,
-        the linearised implicit response to the rows' impulses ``p`` (kg m)."""
+        the nodes the rows moved, each by ``w_eff p``), set ``q = q_before + A0^-1 p / h^2`` on the free dofs,
+        the linearised implicit response to the rows' position-level impulses ``p = f h^2`` (kg m, ``f`` the
+        rows' forces in N)."""
         w = self.row_inv_mass()
         moved = q - q_before
         impulse = np.where(self.free, moved / np.where(w > 0, w, np.inf)[:, None], 0.0)
         if not np.any(impulse):
             return
         self.external += impulse * self.inv_h2
-        response = self.factor.solve(impulse.ravel()[self.free_index]) * (self.dt * self.dt)
+        response = self.factor.solve(impulse.ravel()[self.free_index]) * self.inv_h2
         flat = q_before.copy().ravel()
         flat[self.free_index] += response
         q[...] = flat.reshape(q.shape)
@@ -489,24 +505,29 @@ class QuasiNewton(ImplicitTissue):
     def solve(self, q: np.ndarray, iterations: int) -> None:
         """``iterations`` steps ``x <- x - A0^-1 grad Phi(x)`` from the warm start in ``q`` (m, in place).
 
-        From the second iteration on, ``Phi`` is checked before each step: if the previous step raised it,
-        that step is halved (up to :data:`MAX_HALVINGS` times) before going on.
+        Each step is checked: if it raised ``Phi`` it is halved, up to :data:`MAX_HALVINGS` times, and undone
+        if ``Phi`` still rose, so no solve increases ``Phi``. (Without the check a step under large local strain,
+        where the tangent stiffness exceeds twice ``K0``, can overshoot and diverge.) The check's gradient is
+        the next step's, so ``n`` iterations cost ``n`` solves and ``n + 1`` evaluations of ``Phi``.
         """
         flat = q.reshape(-1)
         free = self.free_index
-        previous = math.inf
-        step = None
+        phi = self.potential(q)
         for _ in range(iterations):
-            phi = self.potential(q)
-            halvings = 0
-            while step is not None and not phi <= previous and halvings < MAX_HALVINGS:
-                step *= 0.5
-                flat[free] -= step
-                phi = self.potential(q)
-                halvings += 1
-            previous = phi
             step = -self.factor.solve(self.grad.reshape(-1)[free])
             flat[free] += step
+            trial = self.potential(q)
+            halvings = 0
+            while not trial <= phi and halvings < MAX_HALVINGS:
+                step *= 0.5
+                flat[free] -= step
+                trial = self.potential(q)
+                halvings += 1
+            if not trial <= phi:
+                flat[free] -= step
+                self.potential(q)
+                return
+            phi = trial
 
 
 class VertexBlockDescent(ImplicitTissue):
