@@ -364,12 +364,11 @@ def check_residual_decrease() -> CheckResult:
     )
 
 
-@benchmark("paper_cube_tissue")
-def bench_paper_cube_tissue() -> dict:
-    """Tissue alone at the paper's Table 1 scale (6840 tets), default solver, 1 ms substeps, one thread."""
+def _bench_cube(material: TissueMaterial, solver: Solver) -> dict:
+    """Median substep of :func:`~suture_gym.sim.scenes.paper_cube` of ``material`` under gravity, 1 ms substeps."""
     dt, warmup, samples = 1e-3, 50, 400
-    scene = paper_cube()
-    solver, control = Solver(), Control()
+    scene = paper_cube(material=material)
+    control = Control()
     for _ in range(warmup):
         solver.step(scene.model, scene.state, control, dt)
     step_times = np.empty(samples)
@@ -395,8 +394,27 @@ def bench_paper_cube_tissue() -> dict:
         "substep_ms_p90": float(np.percentile(step_times, 90)) * 1e3,
         "dt_s": dt,
         "iterations": solver.iterations,
+        "tissue_integrator": solver.tissue_integrator,
+        "tissue_iterations": solver.tissue_iterations,
         "colors": int(len(tissue.tet_color_offsets) - 1),
+        "youngs_modulus_pa": material.youngs_modulus,
+        "poisson_ratio": material.poisson_ratio,
+        "diverged": bool(scene.state.diverged),
+        "max_speed_m_s": float(np.linalg.norm(scene.state.tissue.particle_qd, axis=1).max()),
     }
+
+
+@benchmark("paper_cube_tissue")
+def bench_paper_cube_tissue() -> dict:
+    """Tissue alone at the paper's Table 1 scale (6840 tets), default solver, 1 ms substeps, one thread."""
+    return _bench_cube(TissueMaterial(), Solver())
+
+
+@benchmark("paper_cube_tissue_stiff")
+def bench_paper_cube_tissue_stiff() -> dict:
+    """:func:`bench_paper_cube_tissue` at E = 100 kPa (nu 0.49) with the implicit integrator the issue-13 checks
+    validate (:data:`STIFF_INTEGRATOR`, one iteration per substep): the XPBD split diverges there at 1 ms."""
+    return _bench_cube(TissueMaterial(youngs_modulus=1.0e5), Solver(tissue_integrator=STIFF_INTEGRATOR))
 
 
 # --- Tissue at the environments' own rate: the checks of the implicit integrators (issue 13) -----------------
