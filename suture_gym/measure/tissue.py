@@ -893,3 +893,96 @@ def check_cantilever_period() -> CheckResult:
             "worst_amplitude_lost_per_period": max(r.get("amplitude_lost_per_period", 1.0) for r in runs),
         },
     )
+
+
+# --- The environments with stiff tissue ---------------------------------------------------------------------
+
+#: Young's modulus of the ``env_*_stiff`` benchmarks, Pa (soft tissue; the env default is 3 kPa).
+STIFF_ENV_YOUNGS = 1.0e5
+#: Sweeps per substep with the implicit tissue in a coupled scene: the elastic solve and the coupling rows
+#: alternate twice (one sweep lets a 1 N tip fall through 100 kPa tissue, docs/tissue_integrator.md).
+STIFF_ENV_SWEEPS = 2
+
+
+def _stiff_env(env_id: str, stiff: bool):
+    """``gym.make(env_id)`` with, if ``stiff``, the tissue at :data:`STIFF_ENV_YOUNGS` and every force scaled by
+    ``STIFF_ENV_YOUNGS / E_default`` (puncture and tear forces, action force and torque limits, safe force), its
+    solver swapped for :data:`STIFF_INTEGRATOR` with :data:`STIFF_ENV_SWEEPS` sweeps. Returns (env, overrides)."""
+    import gymnasium as gym
+
+    from suture_gym.envs import ENV_IDS
+    from suture_gym.envs.config import load_config
+
+    if not stiff:
+        return gym.make(env_id), {}
+    base = load_config(ENV_IDS[env_id])
+    scale = STIFF_ENV_YOUNGS / base.tissue.youngs_modulus
+    overrides = {
+        "tissue": {"youngs_modulus": STIFF_ENV_YOUNGS},
+        "coupling": {
+            "puncture_force": base.coupling.puncture_force * scale,
+            "tear_force": base.coupling.tear_force * scale,
+        },
+        "action": {"max_force": base.action.max_force * scale, "max_torque": base.action.max_torque * scale},
+        "reward": {"safe_force": base.reward.safe_force * scale},
+    }
+    env = gym.make(env_id, config=overrides)
+    sim = env.unwrapped.sim
+    sim.solver = Solver(iterations=STIFF_ENV_SWEEPS, max_speed=sim.solver.max_speed, tissue_integrator=STIFF_INTEGRATOR)
+    return env, overrides
+
+
+def _env_rate_run(env_id: str, stiff: bool) -> dict:
+    """Env steps per second (seeded random actions, resets included) and divergences of one env."""
+    from suture_gym.measure.envs import TIMED_STEPS, WARMUP_STEPS, _random_run
+
+    env, overrides = _stiff_env(env_id, stiff)
+    sim = env.unwrapped.sim
+    _random_run(env, WARMUP_STEPS, seed=1)
+    diverged = 0
+    env.action_space.seed(0)
+    env.reset(seed=0)
+    start = time.perf_counter()
+    for _ in range(TIMED_STEPS):
+        _, _, terminated, truncated, info = env.step(env.action_space.sample())
+        diverged += bool(info.get("diverged", False))
+        if terminated or truncated:
+            env.reset()
+    elapsed = time.perf_counter() - start
+    model = sim.model
+    env.close()
+    return {
+        "tets": model.tissue.tet_count,
+        "particles": model.tissue.particle_count,
+        "strand_nodes": model.coupling.strand_node_count,
+        "env_steps_per_s": TIMED_STEPS / elapsed,
+        "diverged_steps": diverged,
+        "substeps_per_env_step": sim.substeps,
+        "dt_s": sim.dt,
+        "iterations": sim.solver.iterations,
+        "tissue_integrator": sim.solver.tissue_integrator,
+        "overrides": overrides,
+    }
+
+
+def _register_stiff_env_benchmarks() -> None:
+    from suture_gym.envs import ENV_IDS
+
+    def run(env_id: str) -> dict:
+        stiff = _env_rate_run(env_id, True)
+        default = _env_rate_run(env_id, False)
+        return {
+            **stiff,
+            "env_id": env_id,
+            "same_run_default_env_steps_per_s": default["env_steps_per_s"],
+            "ratio_to_default": stiff["env_steps_per_s"] / default["env_steps_per_s"],
+            "workload": "seeded uniform random actions, resets included; the default env (3 kPa, xpbd) timed "
+            "right after in the same call",
+        }
+
+    for env_id in ENV_IDS:
+        name = "env_" + env_id.split("/")[1].split("-")[0] + "_stiff"
+        benchmark(name)(lambda env_id=env_id: run(env_id))
+
+
+_register_stiff_env_benchmarks()
