@@ -6,7 +6,8 @@ Usage::
     python scripts/bench.py --json     # list of {scene, tets, particles, strand_nodes, substep_ms, ...}
     python scripts/bench.py --only paper_cube_tissue
 
-Times are medians over repeated substeps after a warm-up (numba compilation excluded).
+Times are medians over repeated substeps after a warm-up (numba compilation excluded). Every entry gains
+``realtime_factor``, simulated seconds per wall-clock second (see :func:`realtime_factor`).
 """
 
 from __future__ import annotations
@@ -23,6 +24,20 @@ configure(threads=1)
 from tqdm import tqdm  # noqa: E402
 
 from suture_gym.measure import BENCHMARKS, load_all  # noqa: E402
+
+
+def realtime_factor(entry: dict) -> float | None:
+    """Simulated seconds per wall-clock second of a benchmark entry (what an interactive or haptic user needs
+    to be >= 1): ``env_steps_per_s * substeps_per_env_step * dt_s`` for an environment, ``dt_s / substep``
+    (s) for a simulator scene; None for entries that simulate no time (renderer, collision queries) or do not
+    state their substep (``dt_s``)."""
+    if "dt_s" not in entry:
+        return None
+    if "env_steps_per_s" in entry and "substeps_per_env_step" in entry:
+        return float(entry["env_steps_per_s"] * entry["substeps_per_env_step"] * entry["dt_s"])
+    if "env_steps_per_s" not in entry and entry.get("substep_ms", 0.0) > 0.0:
+        return float(entry["dt_s"] / (entry["substep_ms"] * 1e-3))
+    return None
 
 
 def main(argv: list[str] | None = None) -> int:
@@ -46,6 +61,7 @@ def main(argv: list[str] | None = None) -> int:
     for name in bar:
         bar.set_postfix_str(name)
         entry = {"scene": name, **BENCHMARKS[name]()}
+        entry["realtime_factor"] = realtime_factor(entry)
         entry["machine"] = f"{platform.processor() or platform.machine()}, 1 thread"
         results.append(entry)
 

@@ -23,6 +23,7 @@ from suture_gym.sim.coupling import CouplingModel, CouplingState, CouplingWork
 from suture_gym.sim.mesh import TetMesh, lumped_masses, rest_shape, surface_triangles
 from suture_gym.sim.needle import NeedleModel, NeedleState
 from suture_gym.sim.rod import RodModel, RodState, RodWork, StaticObstacles
+from suture_gym.sim.tissue_implicit import ImplicitTissue, implicit_tissue
 
 
 @dataclass(frozen=True)
@@ -433,6 +434,17 @@ class Work:
         self.rod_work = None if model.suture is None else RodWork(model.suture)
         self.coupling_work = None if model.coupling is None else CouplingWork(model.coupling)
         self.rod_solves = 0
+        self._tissue_integrator: ImplicitTissue | None = None
+
+    def tissue_integrator(self, kind: str, dt: float) -> ImplicitTissue:
+        """The implicit tissue integrator ``kind`` for substep ``dt`` (s) of the model's tissue
+        (:class:`~suture_gym.sim.tissue_implicit.ImplicitTissue`): built, with its factorised rest system, on first
+        use and again only when ``kind`` or ``dt`` changes."""
+        current = self._tissue_integrator
+        if current is None or current.name != kind or current.dt != float(dt):
+            current = implicit_tissue(self.model.tissue, kind, dt)
+            self._tissue_integrator = current
+        return current
 
 
 @dataclass

@@ -93,6 +93,7 @@ from suture_gym.sim.needle import needle_constraint_wrench, needle_predict, need
 from suture_gym.sim.quat import quat_to_matrix
 from suture_gym.sim.rod import friction_kernel, rod_detect_contacts, rod_predict, rod_solve_iteration
 from suture_gym.sim.tissue import project_rollers, project_tets, tet_residual
+from suture_gym.sim.tissue_implicit import IMPLICIT_INTEGRATORS
 
 #: Phases timed by :meth:`Solver.step` when given a ``timings`` dict (seconds accumulated per phase).
 PHASES = ("predict", "detect", "project", "velocities")
@@ -188,15 +189,27 @@ class Solver:
         rod_iterations: most direct-solver iterations of the suture per sweep (>= 1).
         rod_tolerance: the suture's solve stops once its residual (strain-like, dimensionless) is below this
             (>= 0).
+        tissue_integrator: ``"xpbd"`` (the stable neo-Hookean XPBD split, the default) or one of the implicit-Euler
+            integrators of :mod:`suture_gym.sim.tissue_implicit` (``"quasi_newton"``, ``"vbd"``). With an implicit
+            integrator each sweep solves the tissue (``tissue_iterations`` inner iterations) instead of projecting
+            the tets, and the coupling rows see the tissue's substep compliance.
+        tissue_iterations: inner iterations of an implicit tissue integrator per sweep (>= 1; unused by XPBD).
     """
 
     iterations: int = 1
     max_speed: float = 50.0
     rod_iterations: int = 8
     rod_tolerance: float = 1.0e-6
+    tissue_integrator: str = "xpbd"
+    tissue_iterations: int = 1
 
     def __post_init__(self) -> None:
-        for name in ("iterations", "rod_iterations"):
+        if self.tissue_integrator not in ("xpbd", *IMPLICIT_INTEGRATORS):
+            raise ValueError(
+                f"Solver.tissue_integrator must be one of {('xpbd', *IMPLICIT_INTEGRATORS)}, "
+                f"got {self.tissue_integrator!r}"
+            )
+        for name in ("iterations", "rod_iterations", "tissue_iterations"):
             value = getattr(self, name)
             if isinstance(value, bool) or not isinstance(value, (int, np.integer)):
                 raise ValueError(f"Solver.{name} must be an integer, got {value!r}")
@@ -246,6 +259,8 @@ class Solver:
             return
         self._detect(model, state, dt)
         clock.lap("detect")
+        if self._implicit(model):
+            state.work.tissue_integrator(self.tissue_integrator, dt).begin(state.tissue.particle_q, model.gravity)
         for sweep in range(self.iterations):
             self._project(model, state, dt)
             if residuals is not None:
@@ -367,13 +382,36 @@ class Solver:
         if model.suture is not None:
             embedded_inv_mass(
                 coupling.needle_node_count, work.node_rows, work.access_rows, work.access_count,
-                coupling.surface.tri_vertices, model.tissue.particle_inv_mass, model.suture.node_inv_mass,
+                coupling.surface.tri_vertices, self._row_inv_mass(model, state, dt), model.suture.node_inv_mass,
                 work.suture_inv_mass,
             )  # fmt: skip
+
+    def _implicit(self, model: Model) -> bool:
+        """Whether the tissue is stepped by an implicit integrator."""
+        return model.tissue is not None and self.tissue_integrator != "xpbd"
+
+    def _row_inv_mass(self, model: Model, state: State, dt: float) -> np.ndarray:
+        """Tissue inverse masses the coupling rows use: the particles' own with XPBD, the substep compliance
+        (:meth:`~suture_gym.sim.tissue_implicit.ImplicitTissue.row_inv_mass`) with an implicit integrator."""
+        if self._implicit(model):
+            return state.work.tissue_integrator(self.tissue_integrator, dt).row_inv_mass()
+        return model.tissue.particle_inv_mass
 
     def _project(self, model: Model, state: State, dt: float) -> None:
         """Phase 3, one sweep over every constraint group."""
         tissue, tissue_state = model.tissue, state.tissue
+        if self._implicit(model):
+            integrator = state.work.tissue_integrator(self.tissue_integrator, dt)
+            integrator.solve(tissue_state.particle_q, self.tissue_iterations)
+            if model.coupling is not None:
+                before = tissue_state.particle_q.copy()
+                self._project_coupling(model, state, dt)
+                if model.suture is not None:
+                    self._project_suture(model, state, dt)
+                integrator.propagate_rows(before, tissue_state.particle_q)
+            elif model.suture is not None:
+                self._project_suture(model, state, dt)
+            return
         if tissue is not None:
             project_tets(
                 tissue.particle_inv_mass,
@@ -399,12 +437,11 @@ class Solver:
         if model.suture is not None:
             self._project_suture(model, state, dt)
 
-    @staticmethod
-    def _project_coupling(model: Model, state: State, dt: float) -> None:
+    def _project_coupling(self, model: Model, state: State, dt: float) -> None:
         """The Gauss-Seidel coupling rows of needle and suture with the tissue."""
         coupling, work = model.coupling, state.work.coupling_work
         needle, needle_state = model.needle, state.needle
-        tissue_inv_mass = model.tissue.particle_inv_mass
+        tissue_inv_mass = self._row_inv_mass(model, state, dt)
         tissue_q = state.tissue.particle_q
         tri_vertices = coupling.surface.tri_vertices
         eps = coupling.params.resistance_eps
@@ -455,6 +492,7 @@ class Solver:
         coupling, cwork = model.coupling, state.work.coupling_work
         inv_mass = None if coupling is None else cwork.suture_inv_mass
         contact_w = None if coupling is None else cwork.suture_contact_w
+        tissue_w = None if coupling is None else self._row_inv_mass(model, state, dt)
         work.lam[:] = 0.0
         work.lam[1:, 0] = state.suture_tension
         work.begin(rod_state)
@@ -466,7 +504,7 @@ class Solver:
             if coupling is not None:
                 suture_contact_rows(
                     coupling.needle_node_count, coupling.params.resistance_eps, cwork.contact_rows,
-                    coupling.surface.tri_vertices, state.tissue.particle_q, model.tissue.particle_inv_mass,
+                    coupling.surface.tri_vertices, state.tissue.particle_q, tissue_w,
                     rod_state.node_pos, work.contact_gap, work.contact_normal, cwork.suture_contact_w,
                 )  # fmt: skip
             residual = rod_solve_iteration(
@@ -478,7 +516,7 @@ class Solver:
             if coupling is not None:
                 apply_contact_reaction(
                     coupling.needle_node_count, cwork.contact_rows, coupling.surface.tri_vertices,
-                    work.contact_normal, work.z, model.tissue.particle_inv_mass, cwork.row_lambda,
+                    work.contact_normal, work.z, tissue_w, cwork.row_lambda,
                     state.tissue.particle_q,
                 )  # fmt: skip
 

@@ -1,0 +1,614 @@
+"""Implicit-Euler tissue integrators for the stable neo-Hookean energy: the alternatives to the XPBD split.
+
+One substep of implicit Euler with lumped masses ``M``, substep ``h`` and elastic energy ``E`` is the
+minimisation (the "optimisation form", e.g. Martin et al. 2011, Liu et al. 2017, Chen et al. 2024)::
+
+    x_new = argmin_x  Phi(x) = 1 / (2 h^2) (x - y)^T M (x - y) + E(x),     y = x_prev + h v + h^2 g,
+
+over the free degrees of freedom (pinned particles and the constrained axis of an axis-aligned roller
+support are held). ``y`` is what :func:`~suture_gym.sim.solver.predict_particles` writes into the positions
+(velocity damped, gravity added). ``E = sum_t V0_t Psi(F_t)`` with the stable neo-Hookean density of
+:mod:`suture_gym.sim.tissue` (Macklin & Muller 2021's form of Smith et al. 2018)::
+
+    Psi(F) = mu/2 (||F||^2 - 3) + lambda/2 ((det F - gamma)^2 - (1 - gamma)^2),   gamma = 1 + mu / lambda,
+
+where ``lambda`` is the model's hydrostatic modulus (Lame lambda + mu, see
+:class:`~suture_gym.sim.model.TissueMaterial`): at ``F = I`` it linearises to linear elasticity with the
+material's ``E`` and ``nu``. Its first Piola stress is ``P = mu F + lambda (J - gamma) cof F`` and its
+second derivative ``d2Psi/dF_ij dF_kl = mu d_ik d_jl + lambda cof_ij cof_kl + lambda (J - gamma)
+eps_ikm eps_jln F_mn``.
+
+Two solvers of that minimisation, both warm-started from ``x_prev + h v`` (which is the exact answer of a
+body at static equilibrium, so a resting body stays at rest for any ``h``):
+
+* :class:`QuasiNewton` (``"quasi_newton"``): ``x <- x - A0^-1 grad Phi(x)`` with the constant matrix
+  ``A0 = M / h^2 + K0``, ``K0`` the stiffness at the rest shape (the exact Hessian of ``E`` there),
+  factorised once per model and substep (scipy SuperLU). Exact in one iteration for linear elasticity;
+  for large strains and rotations a fixed-point iteration that keeps converging over substeps (Liu et al.
+  2017 use the same kind of constant matrix as their quasi-Newton initial Hessian). Optional iterations
+  check ``Phi`` and halve a step that raised it.
+* :class:`VertexBlockDescent` (``"vbd"``): Chen et al. 2024: Gauss-Seidel over vertices, each a 3x3
+  Newton step on ``Phi`` with the vertex's own Hessian block ``m / h^2 I + sum_t V0 (mu |g_k|^2 I +
+  lambda c c^T)`` (``c = cof F g_k``; the ``J - gamma`` term has a zero vertex block because ``det F``
+  is affine in each node), which is always SPD; optional Chebyshev acceleration over the sweeps (Wang 2015).
+
+Coupling rows (needle, suture) that move tissue nodes after the elastic solve see the tissue through
+:meth:`ImplicitTissue.row_inv_mass` (the diagonal of the substep's compliance ``A0^-1 / h^2``, not the bare
+``1 / m``) and their corrections are spread over the tissue by :meth:`ImplicitTissue.propagate_rows`
+(one solve with ``A0``): the linearised implicit response to the rows' impulses, scaled down where the rows'
+diagonal compliance estimate made it overshoot. Two sweeps per substep (``Solver.iterations = 2``) alternate
+the elastic solve and the rows; one sweep lets a 1 N tip fall through 100 kPa tissue (docs/tissue_integrator.md).
+"""
+
+from __future__ import annotations
+
+import warnings
+
+import numpy as np
+import scipy.sparse as sp
+from numba import njit
+from scipy.sparse.linalg import splu
+
+#: Integrator names accepted by :class:`~suture_gym.sim.solver.Solver` besides ``"xpbd"``.
+IMPLICIT_INTEGRATORS = ("quasi_newton", "vbd")
+
+#: Range of Young's modulus (Pa) and Poisson's ratio the implicit integrators are validated in
+#: (``scripts/validate_physics.py``: tissue_rest_stiff, tissue_sag_vs_fem, uniaxial_*, cantilever_period).
+VALIDATED_YOUNGS_PA = (1.0e3, 1.0e6)
+VALIDATED_POISSON = (0.3, 0.49)
+
+#: Step halvings tried when a quasi-Newton step raised ``Phi``.
+MAX_HALVINGS = 4
+#: Relative rise of ``Phi`` a step may show and still count as not raising it: the round-off of summing ``Phi``
+#: (near equilibrium the true change is below it, and rejecting those steps would cost halvings for nothing).
+ROUNDOFF = 1e-10
+
+
+@njit(cache=True)
+def _cofactor(f: np.ndarray, cof: np.ndarray) -> float:
+    """Write ``cof F`` (columns ``f2 x f3, f3 x f1, f1 x f2``) into ``cof`` (3, 3); return ``det F``."""
+    for j in range(3):
+        a = (j + 1) % 3
+        b = (j + 2) % 3
+        cof[0, j] = f[1, a] * f[2, b] - f[2, a] * f[1, b]
+        cof[1, j] = f[2, a] * f[0, b] - f[0, a] * f[2, b]
+        cof[2, j] = f[0, a] * f[1, b] - f[1, a] * f[0, b]
+    return f[0, 0] * cof[0, 0] + f[1, 0] * cof[1, 0] + f[2, 0] * cof[2, 0]
+
+
+@njit(cache=True)
+def _shape_gradients(dm_inv: np.ndarray, g: np.ndarray) -> None:
+    """``g[k]`` (4, 3): ``dF/dx_k = I (x) g_k``; rows of ``Dm^-1`` for k = 1..3, minus their sum for k = 0."""
+    for j in range(3):
+        g[1, j] = dm_inv[0, j]
+        g[2, j] = dm_inv[1, j]
+        g[3, j] = dm_inv[2, j]
+        g[0, j] = -(dm_inv[0, j] + dm_inv[1, j] + dm_inv[2, j])
+
+
+@njit(cache=True)
+def _tet_f(q: np.ndarray, nodes: np.ndarray, g: np.ndarray, f: np.ndarray) -> None:
+    """``F = sum_k x_k g_k^T`` of one tet (3, 3)."""
+    for i in range(3):
+        for j in range(3):
+            s = 0.0
+            for k in range(4):
+                s += q[nodes[k], i] * g[k, j]
+            f[i, j] = s
+
+
+@njit(cache=True)
+def _stress(f: np.ndarray, mu: float, lam: float, cof: np.ndarray, p_out: np.ndarray) -> float:
+    """:func:`stable_neo_hookean_stress` with a caller-owned ``(3, 3)`` scratch ``cof`` (no allocation)."""
+    gamma = 1.0 + mu / lam
+    det = _cofactor(f, cof)
+    s = lam * (det - gamma)
+    norm2 = 0.0
+    for i in range(3):
+        for j in range(3):
+            norm2 += f[i, j] * f[i, j]
+            p_out[i, j] = mu * f[i, j] + s * cof[i, j]
+    return 0.5 * mu * (norm2 - 3.0) + 0.5 * lam * ((det - gamma) ** 2 - (1.0 - gamma) ** 2)
+
+
+@njit(cache=True)
+def stable_neo_hookean_stress(f: np.ndarray, mu: float, lam: float, p_out: np.ndarray) -> float:
+    """Energy density and first Piola-Kirchhoff stress of the stable neo-Hookean material.
+
+    Args:
+        f: ``(3, 3)`` deformation gradient.
+        mu: deviatoric modulus, Pa.
+        lam: hydrostatic modulus (Lame lambda + mu), Pa, finite.
+        p_out: ``(3, 3)`` written with ``P = dPsi/dF``, Pa.
+
+    Returns:
+        ``Psi(F)``, J/m^3, zero at ``F = I`` (see the module docstring).
+    """
+    return _stress(f, mu, lam, np.empty((3, 3)), p_out)
+
+
+@njit(cache=True)
+def stable_neo_hookean_tangent(f: np.ndarray, mu: float, lam: float, c_out: np.ndarray) -> None:
+    """Second derivative ``c_out[i, j, k, l] = d2Psi / dF_ij dF_kl`` (3, 3, 3, 3), Pa (not projected)."""
+    gamma = 1.0 + mu / lam
+    cof = np.empty((3, 3))
+    det = _cofactor(f, cof)
+    s = lam * (det - gamma)
+    for i in range(3):
+        for j in range(3):
+            for k in range(3):
+                for m in range(3):
+                    value = lam * cof[i, j] * cof[k, m]
+                    if i == k and j == m:
+                        value += mu
+                    if i != k and j != m:
+                        # eps_ikp eps_jmq F_pq: the only p, q left are the third indices.
+                        p = 3 - i - k
+                        q = 3 - j - m
+                        sign = (1.0 if (k - i) % 3 == 1 else -1.0) * (1.0 if (m - j) % 3 == 1 else -1.0)
+                        value += s * sign * f[p, q]
+                    c_out[i, j, k, m] = value
+
+
+@njit(cache=True)
+def tet_stiffness(x: np.ndarray, dm_inv: np.ndarray, volume: float, mu: float, lam: float, k_out: np.ndarray) -> None:
+    """Element Hessian ``d2 (V0 Psi) / dx dx`` of one tet, ``k_out`` (12, 12) in N/m, row ``3 k + a`` = node
+    ``k``, axis ``a``; ``x`` (4, 3) node positions, m; ``dm_inv`` (3, 3) 1/m; ``volume`` m^3; moduli Pa."""
+    g = np.empty((4, 3))
+    _shape_gradients(dm_inv, g)
+    f = np.empty((3, 3))
+    for i in range(3):
+        for j in range(3):
+            s = 0.0
+            for k in range(4):
+                s += x[k, i] * g[k, j]
+            f[i, j] = s
+    c = np.empty((3, 3, 3, 3))
+    stable_neo_hookean_tangent(f, mu, lam, c)
+    for k in range(4):
+        for a in range(3):
+            for n in range(4):
+                for b in range(3):
+                    s = 0.0
+                    for j in range(3):
+                        for m in range(3):
+                            s += g[k, j] * g[n, m] * c[a, j, b, m]
+                    k_out[3 * k + a, 3 * n + b] = volume * s
+
+
+@njit(cache=True)
+def incremental_potential(
+    q: np.ndarray,
+    y: np.ndarray,
+    mass: np.ndarray,
+    free: np.ndarray,
+    inv_h2: float,
+    tet_indices: np.ndarray,
+    tet_dm_inv: np.ndarray,
+    tet_rest_volume: np.ndarray,
+    tet_mu: np.ndarray,
+    tet_lambda: np.ndarray,
+    tets: np.ndarray,
+    grad_out: np.ndarray,
+    with_gradient: bool = True,
+) -> float:
+    """``Phi(x)`` of the implicit-Euler substep and its gradient.
+
+    Args:
+        q: ``(N, 3)`` positions ``x``, m.
+        y: ``(N, 3)`` inertial target ``x_prev + h v + h^2 g``, m.
+        mass: ``(N,)`` lumped masses, kg.
+        free: ``(N, 3) bool`` free degrees of freedom (the inertia term counts only these).
+        inv_h2: ``1 / h^2``, 1/s^2.
+        tet_indices, tet_dm_inv, tet_rest_volume, tet_mu, tet_lambda: the :class:`TissueModel` arrays.
+        tets: ``(A,) int32`` tets to include (those with a free node).
+        grad_out: ``(N, 3)`` written with ``dPhi/dx``, N (zero on fixed degrees of freedom).
+        with_gradient: False: only ``Phi`` (``grad_out`` is left untouched), cheaper.
+
+    Returns:
+        ``Phi`` in J (elastic energy shifted to zero at rest plus the inertia term).
+    """
+    total = 0.0
+    for p in range(q.shape[0]):
+        for i in range(3):
+            if free[p, i]:
+                d = q[p, i] - y[p, i]
+                total += 0.5 * mass[p] * inv_h2 * d * d
+                if with_gradient:
+                    grad_out[p, i] = mass[p] * inv_h2 * d
+            elif with_gradient:
+                grad_out[p, i] = 0.0
+    f = np.empty((3, 3))
+    cof = np.empty((3, 3))
+    stress = np.empty((3, 3))
+    for n in range(tets.shape[0]):
+        t = tets[n]
+        n0, n1, n2, n3 = tet_indices[t, 0], tet_indices[t, 1], tet_indices[t, 2], tet_indices[t, 3]
+        dm = tet_dm_inv[t]
+        for i in range(3):
+            x0 = q[n0, i]
+            d1, d2, d3 = q[n1, i] - x0, q[n2, i] - x0, q[n3, i] - x0
+            for j in range(3):
+                f[i, j] = d1 * dm[0, j] + d2 * dm[1, j] + d3 * dm[2, j]
+        volume = tet_rest_volume[t]
+        total += volume * _stress(f, tet_mu[t], tet_lambda[t], cof, stress)
+        if not with_gradient:
+            continue
+        for i in range(3):
+            p0, p1, p2 = volume * stress[i, 0], volume * stress[i, 1], volume * stress[i, 2]
+            g1 = p0 * dm[0, 0] + p1 * dm[0, 1] + p2 * dm[0, 2]
+            g2 = p0 * dm[1, 0] + p1 * dm[1, 1] + p2 * dm[1, 2]
+            g3 = p0 * dm[2, 0] + p1 * dm[2, 1] + p2 * dm[2, 2]
+            if free[n1, i]:
+                grad_out[n1, i] += g1
+            if free[n2, i]:
+                grad_out[n2, i] += g2
+            if free[n3, i]:
+                grad_out[n3, i] += g3
+            if free[n0, i]:
+                grad_out[n0, i] -= g1 + g2 + g3
+    return total
+
+
+@njit(cache=True)
+def vbd_sweep(
+    q: np.ndarray,
+    y: np.ndarray,
+    mass: np.ndarray,
+    free: np.ndarray,
+    inv_h2: float,
+    tet_indices: np.ndarray,
+    tet_dm_inv: np.ndarray,
+    tet_rest_volume: np.ndarray,
+    tet_mu: np.ndarray,
+    tet_lambda: np.ndarray,
+    vertex_order: np.ndarray,
+    adjacency_offsets: np.ndarray,
+    adjacency_tet: np.ndarray,
+    adjacency_corner: np.ndarray,
+) -> None:
+    """One Gauss-Seidel sweep of Vertex Block Descent (Chen et al. 2024) over ``vertex_order``, in place.
+
+    Per vertex ``i``: ``f = -m/h^2 (x_i - y_i) - sum_t V0 P_t g_k``, ``H = m/h^2 I + sum_t V0 (mu |g_k|^2 I +
+    lambda c c^T)`` with ``c = cof(F_t) g_k`` (SPD), then ``x_i += H^-1 f`` on its free axes.
+
+    Args:
+        q: ``(N, 3)`` positions, m; updated in place.
+        y, mass, free, inv_h2, tet_*: as in :func:`incremental_potential`.
+        vertex_order: ``(V,) int32`` vertices with a free axis.
+        adjacency_offsets: ``(N + 1,) int32`` CSR offsets of each vertex's tets.
+        adjacency_tet: ``(4 T,) int32`` tet of each incidence; ``adjacency_corner``: its local node 0..3.
+    """
+    g = np.empty((4, 3))
+    f = np.empty((3, 3))
+    cof = np.empty((3, 3))
+    hess = np.empty((3, 3))
+    force = np.empty(3)
+    for n in range(vertex_order.shape[0]):
+        v = vertex_order[n]
+        m_h2 = mass[v] * inv_h2
+        for i in range(3):
+            force[i] = -m_h2 * (q[v, i] - y[v, i])
+            for j in range(3):
+                hess[i, j] = m_h2 if i == j else 0.0
+        for e in range(adjacency_offsets[v], adjacency_offsets[v + 1]):
+            t = adjacency_tet[e]
+            k = adjacency_corner[e]
+            _shape_gradients(tet_dm_inv[t], g)
+            _tet_f(q, tet_indices[t], g, f)
+            mu = tet_mu[t]
+            lam = tet_lambda[t]
+            det = _cofactor(f, cof)
+            s = lam * (det - (1.0 + mu / lam))
+            volume = tet_rest_volume[t]
+            gk0, gk1, gk2 = g[k, 0], g[k, 1], g[k, 2]
+            gg = gk0 * gk0 + gk1 * gk1 + gk2 * gk2
+            c0 = cof[0, 0] * gk0 + cof[0, 1] * gk1 + cof[0, 2] * gk2
+            c1 = cof[1, 0] * gk0 + cof[1, 1] * gk1 + cof[1, 2] * gk2
+            c2 = cof[2, 0] * gk0 + cof[2, 1] * gk1 + cof[2, 2] * gk2
+            c = (c0, c1, c2)
+            for i in range(3):
+                fg = f[i, 0] * gk0 + f[i, 1] * gk1 + f[i, 2] * gk2
+                force[i] -= volume * (mu * fg + s * c[i])
+                for j in range(3):
+                    hess[i, j] += volume * lam * c[i] * c[j]
+                hess[i, i] += volume * mu * gg
+        for i in range(3):
+            if not free[v, i]:
+                force[i] = 0.0
+                for j in range(3):
+                    hess[i, j] = 0.0
+                    hess[j, i] = 0.0
+                hess[i, i] = 1.0
+        # 3x3 SPD solve by the adjugate.
+        a00, a01, a02 = hess[0, 0], hess[0, 1], hess[0, 2]
+        a11, a12, a22 = hess[1, 1], hess[1, 2], hess[2, 2]
+        i00 = a11 * a22 - a12 * a12
+        i01 = a02 * a12 - a01 * a22
+        i02 = a01 * a12 - a02 * a11
+        det3 = a00 * i00 + a01 * i01 + a02 * i02
+        if not det3 > 0.0:
+            continue
+        i11 = a00 * a22 - a02 * a02
+        i12 = a01 * a02 - a00 * a12
+        i22 = a00 * a11 - a01 * a01
+        q[v, 0] += (i00 * force[0] + i01 * force[1] + i02 * force[2]) / det3
+        q[v, 1] += (i01 * force[0] + i11 * force[1] + i12 * force[2]) / det3
+        q[v, 2] += (i02 * force[0] + i12 * force[1] + i22 * force[2]) / det3
+
+
+def stiffness_matrix(tissue, q: np.ndarray | None = None) -> sp.csr_matrix:
+    """Global Hessian of the elastic energy ``d2E/dx dx`` at positions ``q`` (default: the rest shape).
+
+    Args:
+        tissue: a :class:`~suture_gym.sim.model.TissueModel` (finite hydrostatic moduli).
+        q: ``(N, 3)`` positions, m, or None for ``particle_rest_q``.
+
+    Returns:
+        ``(3N, 3N)`` CSR matrix in N/m, dof ``3 p + a`` = particle ``p``, axis ``a``. At the rest shape it is
+        the small-strain linear-elastic stiffness with the material's ``E`` and ``nu`` (SPD up to rigid
+        motions).
+    """
+    q = tissue.particle_rest_q if q is None else np.asarray(q, dtype=np.float64)
+    t_count = tissue.tet_count
+    blocks = np.empty((t_count, 12, 12))
+    x = np.empty((4, 3))
+    for t in range(t_count):
+        x[:] = q[tissue.tet_indices[t]]
+        tet_stiffness(
+            x, tissue.tet_dm_inv[t], tissue.tet_rest_volume[t], tissue.tet_mu[t], tissue.tet_lambda[t], blocks[t]
+        )
+    dof = (3 * tissue.tet_indices[:, :, None] + np.arange(3)[None, None, :]).reshape(t_count, 12)
+    rows = np.repeat(dof, 12, axis=1).ravel()
+    cols = np.tile(dof, (1, 12)).ravel()
+    n = 3 * tissue.particle_count
+    return sp.csr_matrix((blocks.ravel(), (rows, cols)), shape=(n, n))
+
+
+def check_material_range(tissue) -> None:
+    """Raise ValueError for tissue the implicit integrators cannot represent, warn outside the validated range.
+
+    Incompressible tets (``lambda = inf``, ``nu = 0.5``) need the constraint formulation: ValueError naming
+    ``poisson_ratio``. Young's modulus ``E`` outside :data:`VALIDATED_YOUNGS_PA` or ``nu`` outside
+    :data:`VALIDATED_POISSON` (recovered per tet from ``mu`` and ``lambda``): a ``UserWarning`` naming the
+    parameter and the range.
+    """
+    if not np.all(np.isfinite(tissue.tet_lambda)):
+        raise ValueError(
+            "TissueMaterial.poisson_ratio = 0.5 (incompressible) is not supported by the implicit tissue "
+            "integrators; use poisson_ratio <= 0.49 or tissue_integrator='xpbd'"
+        )
+    mu = tissue.tet_mu
+    lame = tissue.tet_lambda - mu
+    nu = lame / (2.0 * (lame + mu))
+    youngs = 2.0 * mu * (1.0 + nu)
+    low, high = VALIDATED_YOUNGS_PA
+    if youngs.min() < low * (1 - 1e-9) or youngs.max() > high * (1 + 1e-9):
+        warnings.warn(
+            f"TissueMaterial.youngs_modulus spans {youngs.min():.4g}..{youngs.max():.4g} Pa, outside the range "
+            f"{low:g}..{high:g} Pa the implicit tissue integrator is validated for",
+            UserWarning,
+            stacklevel=3,
+        )
+    low, high = VALIDATED_POISSON
+    if nu.min() < low - 1e-9 or nu.max() > high + 1e-9:
+        warnings.warn(
+            f"TissueMaterial.poisson_ratio spans {nu.min():.4g}..{nu.max():.4g}, outside the range "
+            f"{low:g}..{high:g} the implicit tissue integrator is validated for",
+            UserWarning,
+            stacklevel=3,
+        )
+
+
+def _free_dofs(tissue) -> np.ndarray:
+    """``(N, 3) bool``: free axes (not pinned, not the normal of an axis-aligned roller support)."""
+    free = np.repeat((tissue.particle_inv_mass > 0)[:, None], 3, axis=1)
+    for p, normal in zip(tissue.roller_particle, tissue.roller_normal, strict=True):
+        axis = int(np.argmax(np.abs(normal)))
+        if abs(abs(normal[axis]) - 1.0) > 1e-12:
+            raise ValueError(
+                f"roller support of particle {int(p)} has normal {normal.tolist()}: the implicit tissue "
+                "integrators support only axis-aligned roller normals"
+            )
+        free[p, axis] = False
+    return free
+
+
+class ImplicitTissue:
+    """Per-(tissue, dt) data of an implicit integrator: free dofs, the factorised ``A0 = M/h^2 + K0`` and
+    the buffers of a substep. Built by :func:`implicit_tissue`; the solver keeps one per state in
+    :attr:`~suture_gym.sim.model.Work.tissue_integrator` (static per model and ``dt``, never in the frozen Model).
+
+    Attributes:
+        tissue: the :class:`~suture_gym.sim.model.TissueModel` it was built for.
+        free: ``(N, 3) bool`` free degrees of freedom.
+        dt: substep, s.
+    """
+
+    def __init__(self, tissue, dt: float):
+        check_material_range(tissue)
+        self.tissue = tissue
+        self.dt = float(dt)
+        self.inv_h2 = 1.0 / (self.dt * self.dt)
+        self.free = _free_dofs(tissue)
+        self.free_index = np.flatnonzero(self.free.ravel())
+        mass = np.repeat(tissue.particle_mass, 3)
+        stiffness = stiffness_matrix(tissue)
+        a0 = stiffness[self.free_index][:, self.free_index] + sp.diags(mass[self.free_index] * self.inv_h2)
+        self.factor = splu(
+            a0.tocsc(), permc_spec="MMD_AT_PLUS_A", diag_pivot_thresh=0.0, options={"SymmetricMode": True}
+        )
+        self.y = np.zeros((tissue.particle_count, 3))
+        self.grad = np.zeros((tissue.particle_count, 3))
+        self.external = np.zeros((tissue.particle_count, 3))
+        self._row_inv_mass: np.ndarray | None = None
+
+    def begin(self, q: np.ndarray, gravity: np.ndarray) -> None:
+        """Store the inertial target ``y`` (the predicted ``q``) and move ``q`` to the warm start
+        ``y - h^2 g = x_prev + h v`` on the free dofs. Axis-aligned roller axes are set on their planes."""
+        tissue = self.tissue
+        for p, normal, offset in zip(tissue.roller_particle, tissue.roller_normal, tissue.roller_offset, strict=True):
+            axis = int(np.argmax(np.abs(normal)))
+            q[p, axis] = offset / normal[axis]
+        self.y[...] = q
+        self.external[...] = 0.0
+        q -= np.where(self.free, gravity[None, :] * (self.dt * self.dt), 0.0)
+
+    def potential(self, q: np.ndarray, with_gradient: bool = True) -> float:
+        """``Phi(q) - f_ext . q`` (J) of the current substep, ``f_ext`` the coupling rows' forces of the
+        earlier sweeps of this substep (:attr:`external`, N); writes its gradient into ``self.grad`` (N) unless
+        ``with_gradient`` is False."""
+        t = self.tissue
+        phi = incremental_potential(
+            q, self.y, t.particle_mass, self.free, self.inv_h2, t.tet_indices, t.tet_dm_inv, t.tet_rest_volume,
+            t.tet_mu, t.tet_lambda, t.tet_color_order, self.grad, with_gradient,
+        )  # fmt: skip
+        if with_gradient:
+            self.grad -= self.external
+        return phi - float(np.sum(self.external * q))
+
+    def row_inv_mass(self) -> np.ndarray:
+        """``(N,)`` inverse masses (1/kg) for coupling rows: the mean of the three diagonal entries of the
+        substep compliance ``A0^-1 / h^2`` of each particle (``1/m`` for a particle without stiffness), 0 for
+        pinned particles. Computed once per integrator (one solve per free dof, batched)."""
+        if self._row_inv_mass is None:
+            n_free = self.free_index.size
+            diag = np.empty(n_free)
+            batch = 256
+            for start in range(0, n_free, batch):
+                stop = min(n_free, start + batch)
+                rhs = np.zeros((n_free, stop - start))
+                rhs[np.arange(start, stop), np.arange(stop - start)] = 1.0
+                diag[start:stop] = self.factor.solve(rhs)[np.arange(start, stop), np.arange(stop - start)]
+            full = np.zeros(3 * self.tissue.particle_count)
+            full[self.free_index] = diag * self.inv_h2
+            per_axis = full.reshape(-1, 3)
+            count = np.maximum(self.free.sum(axis=1), 1)
+            self._row_inv_mass = per_axis.sum(axis=1) / count
+        return self._row_inv_mass
+
+    def propagate_rows(self, q_before: np.ndarray, q: np.ndarray) -> None:
+        """Spread the coupling rows' corrections over the tissue.
+
+        With ``d = q - q_before`` (non-zero only at the nodes the rows moved, each by ``w_eff p``), the rows'
+        position-level impulses are ``p = d / w_eff`` (kg m; forces ``p / h^2`` N) and the tissue's linearised
+        implicit response is ``Delta = A0^-1 p / h^2``. The rows estimated each tissue point's compliance from
+        the diagonal ``w_eff`` alone, so where a row acts on several nodes that move together (a point inside a
+        tet or triangle) the response overshoots what the row asked for, by up to the number of nodes; applied
+        as is, the rows and the tissue then oscillate and diverge (measured: NeedleInsert at 100 kPa). So
+        ``q = q_before + s Delta`` with ``s`` in ``[0, 1]`` the least-squares factor that best reproduces ``d``
+        at the moved nodes (1 for rows on single, uncorrelated nodes); :attr:`external` gains the full ``p / h^2``,
+        so the next sweep's solve carries the rows' whole load (the last sweep's ``1 - s`` share is lost: the
+        base under a 1 N tip on a 100 kPa pad carries 94% of it with two sweeps).
+        """
+        w = self.row_inv_mass()
+        moved = q - q_before
+        impulse = np.where(self.free, moved / np.where(w > 0, w, np.inf)[:, None], 0.0)
+        if not np.any(impulse):
+            return
+        response = np.zeros(q.size)
+        response[self.free_index] = self.factor.solve(impulse.ravel()[self.free_index]) * self.inv_h2
+        response = response.reshape(q.shape)
+        rows = np.any(impulse != 0.0, axis=1)
+        overlap = float(np.sum(response[rows] * moved[rows]))
+        norm2 = float(np.sum(response[rows] * response[rows]))
+        scale = min(1.0, max(0.0, overlap / norm2)) if norm2 > 0.0 else 0.0
+        self.external += self.inv_h2 * impulse
+        q[...] = q_before + scale * response
+
+
+class QuasiNewton(ImplicitTissue):
+    """Quasi-Newton implicit Euler with the prefactored rest-shape system (see the module docstring)."""
+
+    name = "quasi_newton"
+
+    def solve(self, q: np.ndarray, iterations: int) -> None:
+        """``iterations`` steps ``x <- x - A0^-1 grad Phi(x)`` from the warm start in ``q`` (m, in place).
+
+        Each step is checked: if it raised ``Phi`` (by more than :data:`ROUNDOFF` relative) it is halved, up to
+        :data:`MAX_HALVINGS` times, and undone if ``Phi`` still rose, so no solve increases ``Phi``. (Without the
+        check a step under large local strain, where the tangent stiffness exceeds twice ``K0``, can overshoot and
+        diverge.) The check's gradient is the next step's, so ``n`` iterations cost ``n`` solves and ``n + 1``
+        evaluations of ``Phi`` (the last one without the gradient).
+        """
+        flat = q.reshape(-1)
+        free = self.free_index
+        phi = self.potential(q)
+        for iteration in range(iterations):
+            last = iteration == iterations - 1
+            step = -self.factor.solve(self.grad.reshape(-1)[free])
+            flat[free] += step
+            trial = self.potential(q, not last)
+            bound = phi + ROUNDOFF * abs(phi)
+            halvings = 0
+            while not trial <= bound and halvings < MAX_HALVINGS:
+                step *= 0.5
+                flat[free] -= step
+                trial = self.potential(q, not last)
+                halvings += 1
+            if not trial <= bound:
+                flat[free] -= step
+                return
+            phi = trial
+
+
+class VertexBlockDescent(ImplicitTissue):
+    """Vertex Block Descent with Chebyshev acceleration (see the module docstring).
+
+    Attributes:
+        chebyshev_rho: spectral-radius estimate of the Chebyshev semi-iteration (Wang 2015); 0 = plain VBD, the
+            default: with 0.9, two or three sweeps per substep diverged on the environments' pad (30 kPa to 1 MPa,
+            1 ms; docs/tissue_integrator.md).
+    """
+
+    name = "vbd"
+    chebyshev_rho = 0.0
+
+    def __init__(self, tissue, dt: float):
+        super().__init__(tissue, dt)
+        tissue = self.tissue
+        active = np.flatnonzero(self.free.any(axis=1)).astype(np.int32)
+        self.vertex_order = active
+        incidence = tissue.tet_indices[tissue.tet_color_order]
+        tet_of = np.repeat(tissue.tet_color_order, 4)
+        corner = np.tile(np.arange(4), incidence.shape[0])
+        vertex = incidence.ravel()
+        order = np.argsort(vertex, kind="stable")
+        self.adjacency_tet = tet_of[order].astype(np.int32)
+        self.adjacency_corner = corner[order].astype(np.int32)
+        counts = np.bincount(vertex, minlength=tissue.particle_count)
+        self.adjacency_offsets = np.concatenate([[0], np.cumsum(counts)]).astype(np.int32)
+
+    def solve(self, q: np.ndarray, iterations: int) -> None:
+        """``iterations`` VBD sweeps with Chebyshev acceleration from the warm start in ``q`` (m, in place)."""
+        t = self.tissue
+        rho2 = self.chebyshev_rho**2
+        older = q.copy()
+        old = q.copy()
+        omega = 1.0
+        for k in range(iterations):
+            vbd_sweep(
+                q, self.y, t.particle_mass, self.free, self.inv_h2, t.tet_indices, t.tet_dm_inv, t.tet_rest_volume,
+                t.tet_mu, t.tet_lambda, self.vertex_order, self.adjacency_offsets, self.adjacency_tet,
+                self.adjacency_corner,
+            )  # fmt: skip
+            if k == 1:
+                omega = 2.0 / (2.0 - rho2)
+            elif k > 1:
+                omega = 4.0 / (4.0 - rho2 * omega)
+            if k >= 1:
+                q[...] = older + omega * (q - older)
+            older[...] = old
+            old[...] = q
+
+
+_KINDS = {"quasi_newton": QuasiNewton, "vbd": VertexBlockDescent}
+
+
+def implicit_tissue(tissue, kind: str, dt: float) -> ImplicitTissue:
+    """A new :class:`ImplicitTissue` of ``kind`` (:data:`IMPLICIT_INTEGRATORS`) for ``tissue`` and ``dt`` (s):
+    the rest system factorised once (the solver keeps it in ``State.work``, see
+    :meth:`~suture_gym.sim.model.Work.tissue_integrator`)."""
+    if kind not in _KINDS:
+        raise ValueError(f"tissue_integrator must be one of {('xpbd', *IMPLICIT_INTEGRATORS)}, got {kind!r}")
+    return _KINDS[kind](tissue, dt)
