@@ -280,3 +280,37 @@ def test_test_bar_scenes_pin_the_documented_faces():
     assert len(block.model.tissue.roller_particle) == 4 * 9
     with pytest.raises(ValueError, match="length"):
         hanging_bar(length=-1.0)
+
+
+# --- stability range of the XPBD tissue -----------------------------------------------------------------
+
+
+def _pad(youngs):
+    mesh = box_tet_grid((0.01, 0.01, 0.004), (5, 5, 2))
+    material = TissueMaterial(youngs_modulus=youngs, poisson_ratio=0.45)
+    tissue = TissueModel.from_mesh(mesh, material, pinned=mesh.vertices[:, 2] == 0.0)
+    return Model(tissue=tissue), State(tissue=TissueState.at_rest(tissue))
+
+
+def test_xpbd_stability_number_of_a_grid_is_dt_wave_speed_over_cell():
+    from suture_gym.sim.tissue import xpbd_stability_number
+
+    model, _ = _pad(3.0e4)
+    density = TissueMaterial().density
+    assert xpbd_stability_number(model.tissue, DT) == pytest.approx(DT * math.sqrt(3.0e4 / density) / 0.002)
+
+
+def test_solver_warns_naming_the_parameters_when_xpbd_tissue_is_outside_its_stability_range():
+    model, state = _pad(3.0e4)
+    with pytest.warns(UserWarning, match=r"tissue_integrator 'xpbd'.*youngs_modulus.*dt"):
+        _run(model, state, 2)
+
+
+@pytest.mark.parametrize("youngs, solver", [(3.0e3, Solver()), (3.0e4, Solver(tissue_integrator="quasi_newton"))])
+def test_no_stability_warning_inside_the_range_or_with_the_implicit_integrator(youngs, solver):
+    import warnings
+
+    model, state = _pad(youngs)
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")
+        _run(model, state, 2, solver=solver)

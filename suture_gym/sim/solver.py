@@ -1,4 +1,4 @@
-"""The XPBD solver: one documented substep order (DESIGN.md section 3).
+"""The XPBD solver: one documented substep order (docs/design.md section 3).
 
 :meth:`Solver.step` advances a :class:`~suture_gym.sim.model.State` by one substep ``dt`` in place:
 
@@ -58,7 +58,15 @@ with 8 sweeps). Under the large local strains of a needle pressed into it the ma
 comes to rest, so tissue that stiff needs ``dt`` = 0.25 ms for 5 mm cells. Coupling rows cannot
 transmit much more than ``m dt^-2`` times a cell size through a surface node of mass ``m`` in one sweep,
 so a concentrated load also dents the tissue more at large ``dt`` (a 1 N tip on the 30 kPa pad: 3.7 mm at
-0.25 ms, 5.3 mm at 0.5 ms).
+0.25 ms, 5.3 mm at 0.5 ms). On a state's first step the solver computes that number
+(:func:`~suture_gym.sim.tissue.xpbd_stability_number`) and warns, naming the parameters, above
+:data:`~suture_gym.sim.tissue.XPBD_STABILITY_LIMIT`.
+
+Implicit tissue (``tissue_integrator="quasi_newton"`` or ``"vbd"``, :mod:`suture_gym.sim.tissue_implicit`): the
+tissue's phase-3 work is an implicit-Euler solve of its elastic energy in place of the tet projection, stable and
+true to its material from 1 kPa to 1 MPa at 1 ms (docs/tissue_integrator.md); the coupling rows then use the
+tissue's substep compliance as its inverse mass and their corrections are spread through the tissue by one more
+solve. Coupled scenes need ``iterations=2`` so the elastic solve and the rows alternate.
 
 Robustness: every loop is bounded (fixed sweeps and rod iterations, path buffers of fixed size that flag
 overflow instead of growing), and divergence is reported in ``state.diverged``, never raised. A state is
@@ -71,6 +79,7 @@ from __future__ import annotations
 
 import math
 import time
+import warnings
 from dataclasses import dataclass
 
 import numpy as np
@@ -92,7 +101,13 @@ from suture_gym.sim.model import Control, Model, State, Work
 from suture_gym.sim.needle import needle_constraint_wrench, needle_predict, needle_update_velocities
 from suture_gym.sim.quat import quat_to_matrix
 from suture_gym.sim.rod import friction_kernel, rod_detect_contacts, rod_predict, rod_solve_iteration
-from suture_gym.sim.tissue import project_rollers, project_tets, tet_residual
+from suture_gym.sim.tissue import (
+    XPBD_STABILITY_LIMIT,
+    project_rollers,
+    project_tets,
+    tet_residual,
+    xpbd_stability_number,
+)
 from suture_gym.sim.tissue_implicit import IMPLICIT_INTEGRATORS
 
 #: Phases timed by :meth:`Solver.step` when given a ``timings`` dict (seconds accumulated per phase).
@@ -251,6 +266,7 @@ class Solver:
             return
         if state.work is None or state.work.model is not model:
             state.work = Work(model)
+            self._warn_if_unstable(model, dt)
         clock = _Clock(timings)
         self._predict(model, state, control, dt)
         clock.lap("predict")
@@ -270,6 +286,21 @@ class Solver:
         self._read_forces(model, state, dt)
         clock.lap("velocities")
         state.time += dt
+
+    def _warn_if_unstable(self, model: Model, dt: float) -> None:
+        """Warn, naming the parameters, when the XPBD tissue integrator runs outside its stability range
+        (:func:`~suture_gym.sim.tissue.xpbd_stability_number`); checked once per model and state."""
+        if model.tissue is None or self._implicit(model):
+            return
+        number = xpbd_stability_number(model.tissue, dt)
+        if number > XPBD_STABILITY_LIMIT:
+            warnings.warn(
+                f"tissue_integrator 'xpbd' at dt = {dt:g} s is unstable for this tissue: dt sqrt(E / rho) / h = "
+                f"{number:.3g} > {XPBD_STABILITY_LIMIT:g} (lower TissueMaterial.youngs_modulus or Solver dt, or use "
+                "Solver(tissue_integrator='quasi_newton', iterations=2); docs/tissue_integrator.md)",
+                UserWarning,
+                stacklevel=3,
+            )
 
     def residual(self, model: Model, state: State, dt: float) -> float:
         """Tissue XPBD residual ``||C + alpha~ lambda||`` at the current positions and multipliers."""

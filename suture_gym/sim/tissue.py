@@ -357,3 +357,27 @@ def project_rollers(
         q[p, 0] -= c * n0
         q[p, 1] -= c * n1
         q[p, 2] -= c * n2
+
+
+#: Largest ``dt sqrt(E / rho) / h`` at which the XPBD tissue projection is known to stay at rest: measured
+#: stable at 0.89 and oscillating at 1.10 (:mod:`suture_gym.sim.solver`, Stability); above it the solver warns.
+XPBD_STABILITY_LIMIT = 1.0
+
+
+def xpbd_stability_number(tissue, dt: float) -> float:
+    """Largest ``dt sqrt(E / rho) / h`` over the free tets of ``tissue`` (a
+    :class:`~suture_gym.sim.model.TissueModel`) at substep ``dt`` (s): ``E`` each tet's Young's modulus (Pa,
+    recovered from ``mu`` and ``lambda``; ``3 mu`` when incompressible), ``rho`` the mesh's mean density (kg/m^3,
+    total mass over rest volume) and ``h`` the tet's shortest rest edge (m). Dimensionless; the XPBD tissue
+    projection is stable at rest only below about :data:`XPBD_STABILITY_LIMIT`."""
+    tets = tissue.tet_color_order
+    if tets.size == 0:
+        return 0.0
+    mu, lam = tissue.tet_mu[tets], tissue.tet_lambda[tets]
+    with np.errstate(invalid="ignore"):
+        youngs = np.where(np.isfinite(lam), mu * (3.0 * lam - mu) / lam, 3.0 * mu)
+    density = tissue.particle_mass.sum() / tissue.tet_rest_volume.sum()
+    corners = tissue.particle_rest_q[tissue.tet_indices[tets]]
+    edges = [np.linalg.norm(corners[:, a] - corners[:, b], axis=1) for a in range(4) for b in range(a + 1, 4)]
+    shortest = np.min(edges, axis=0)
+    return float(np.max(dt * np.sqrt(youngs / density) / shortest))
