@@ -14,14 +14,8 @@ import pytest
 
 from suture_gym.measure.render import box_surface, paper_cube_frame, paper_cube_scene
 from suture_gym.render import Camera, Material, RenderFrame, SceneRenderer, SceneStyle, frame_box, save_png, write_video
-from suture_gym.render.raster import (
-    FONT_GLYPHS,
-    clear_gbuffer,
-    raster_triangles,
-    text_bitmap,
-    text_glyph_indices,
-    vertex_normals,
-)
+from suture_gym.render.overlay import FONT_GLYPHS, text_bitmap, text_glyph_indices
+from suture_gym.render.raster import clear_gbuffer, raster_triangles, vertex_normals
 
 FLAT = Material(1.0, 0.0, 0.0, 1)
 WHITE_BG = {"background_top": (1.0, 1.0, 1.0), "background_bottom": (1.0, 1.0, 1.0)}

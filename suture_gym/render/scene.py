@@ -12,18 +12,13 @@ from dataclasses import dataclass, field
 import numpy as np
 
 from suture_gym.render.camera import Camera, frame_box
+from suture_gym.render.overlay import FONT_GLYPHS, blend_rect, draw_gauge_bar, draw_text, text_glyph_indices, text_size
 from suture_gym.render.raster import (
-    FONT_GLYPHS,
-    blend_rect,
     clear_gbuffer,
-    draw_gauge_bar,
-    draw_text,
     raster_capsules,
     raster_discs,
     raster_triangles,
     shade_resolve,
-    text_glyph_indices,
-    text_size,
     transform_points,
     vertex_normals,
 )
