@@ -251,7 +251,7 @@ def _press(youngs: float, force: float, solver: Solver, seconds: float = 0.4):
 def test_needle_load_reaches_the_implicit_tissue_and_its_base():
     """1 N tip on a 100 kPa pad at 1 ms, quasi-Newton with two sweeps: no divergence, the tissue comes to rest,
     the tip dents it by under a cell, and the pinned base carries the tissue's weight plus the push."""
-    from suture_gym.measure.tissue import _elastic_gradient
+    from suture_gym.measure.tissue_stiff import _elastic_gradient
 
     scene, dent = _press(1.0e5, 1.0, Solver(tissue_integrator="quasi_newton", iterations=2))
     state, tissue = scene.state, scene.model.tissue

@@ -16,6 +16,7 @@ from dataclasses import asdict, dataclass, field
 #: Modules that define checks and benchmarks; imported by :func:`load_all`.
 MODULES: tuple[str, ...] = (
     "suture_gym.measure.tissue",
+    "suture_gym.measure.tissue_stiff",
     "suture_gym.measure.strands",
     "suture_gym.measure.interaction",
     "suture_gym.measure.collision",
