@@ -12,6 +12,8 @@ import pytest
 from suture_gym.measure.interaction import (
     PAD_DT,
     PAD_PUNCTURE_FORCE,
+    SETTLED_ANGULAR_SPEED,
+    SETTLED_SPEED,
     WRENCH_CASES,
     hold_wrench,
     pad_with_needle,
@@ -56,8 +58,10 @@ def test_rigid_base_stops_a_needle_driven_through_the_pad():
 
 @pytest.mark.parametrize("case", ["down_drive", "down_twist_z", "oblique_x"])
 def test_largest_wrench_into_the_pad_held_for_two_seconds(case):
-    """5 N and 0.05 N m towards a pose in or under the pad, held 2 s: no divergence, and the needle ends
-    wedged against the tissue and the base (driven at 5 N, a needle that got free would be flying at m/s)."""
+    """5 N and 0.05 N m towards a pose in or under the pad, held 2 s: no divergence, and the needle ends at
+    rest, held by the tissue and the base: its mean velocity and angular velocity over the last 0.2 s are
+    within 1 mm and 0.1 rad of net motion (driven at 5 N, a needle that got free would be flying at m/s; a
+    wedged one may rattle, see :data:`~suture_gym.measure.interaction.SETTLED_SPEED`)."""
     _, direction, axis, angle = next(c for c in WRENCH_CASES if c[0] == case)
     scene = pad_with_needle()
     run = hold_wrench(scene, direction, axis, angle)
@@ -65,7 +69,9 @@ def test_largest_wrench_into_the_pad_held_for_two_seconds(case):
     state = scene.state
     for array in (state.tissue.particle_q, state.needle.body_pos, state.suture.node_pos):
         assert np.all(np.isfinite(array))
-    assert run["needle_speed_m_s"] < 0.05 and run["needle_angular_speed_rad_s"] < 5.0
+    assert run["needle_mean_speed_m_s"] < SETTLED_SPEED
+    assert run["needle_mean_angular_speed_rad_s"] < SETTLED_ANGULAR_SPEED
+    assert run["settled"]
     assert run["max_tissue_speed_m_s"] < Solver().max_speed
 
 

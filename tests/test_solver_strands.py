@@ -12,7 +12,7 @@ from suture_gym.sim.model import Control, Model, State
 from suture_gym.sim.needle import NeedleModel, NeedleState, VirtualCoupling
 from suture_gym.sim.quat import quat_to_matrix
 from suture_gym.sim.rod import RodModel, RodState, StaticObstacles, SutureParams, segment_strain
-from suture_gym.sim.scenes import needle_arc_pose, two_bar_suturing
+from suture_gym.sim.scenes import WOUND_ARC_AXIS, WOUND_ARC_U, needle_circle_pose, two_bar_suturing, wound_tip_angle
 from suture_gym.sim.solver import PHASES, Solver
 
 DT = 1e-3
@@ -20,7 +20,8 @@ DT = 1e-3
 
 def _free_strands(suture_nodes=21):
     needle = NeedleModel.from_shape(gravity_compensation=True)
-    pos, quat = needle_arc_pose(needle, np.array([0.0, 0.0, 0.1]), 0.3)
+    pos, quat = needle_circle_pose(needle, np.array([0.0, 0.0, 0.1]), WOUND_ARC_AXIS, WOUND_ARC_U,
+                                   wound_tip_angle(needle, 0.3))
     suture = RodModel.from_params(SutureParams(length=0.02, node_count=suture_nodes))
     swage = pos + quat_to_matrix(quat) @ needle.swage_pos_body
     return needle, NeedleState.at_rest(pos, quat), suture, RodState.straight(suture, swage, (0.0, -1.0, 0.5))
@@ -120,10 +121,11 @@ def test_initial_state_needs_matching_strand_states():
 def _turning(scene, steps, start=0):
     """Step the suturing scene with the virtual coupling turning the needle at 1 rad/s."""
     model, state = scene.model, scene.state
-    center = np.array(scene.settings["arc_center_m"])
+    settings = scene.settings
     vc, solver, control = VirtualCoupling(), Solver(), Control()
     for k in range(start, start + steps):
-        pos, quat = needle_arc_pose(model.needle, center, 1.0 * k * DT)
+        pos, quat = needle_circle_pose(model.needle, settings["arc_center_m"], settings["arc_axis"],
+                                       settings["arc_u"], settings["tip_angle_rad"] + 1.0 * k * DT)
         control.needle_wrench = vc.wrench(
             model.needle, state.needle, pos + quat_to_matrix(quat) @ model.needle.grip_pos_body, quat
         )

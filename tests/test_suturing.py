@@ -22,7 +22,7 @@ PULL_TIME = 3.0  # s
 @pytest.fixture(scope="module")
 def stitched():
     scene = two_bar_suturing()
-    controller = StitchController(scene.model.needle, np.array(scene.settings["arc_center_m"]))
+    controller = StitchController.for_scene(scene)
     events = []
 
     def probe(s, t):

@@ -219,7 +219,7 @@ def _press(youngs: float, force: float, solver: Solver, seconds: float = 0.4):
     from suture_gym.sim.needle import NeedleModel, VirtualCoupling, needle_point_velocity
     from suture_gym.sim.quat import quat_to_matrix
     from suture_gym.sim.rod import SutureParams
-    from suture_gym.sim.scenes import add_strands, needle_arc_pose
+    from suture_gym.sim.scenes import WOUND_ARC_AXIS, WOUND_ARC_U, add_strands, needle_circle_pose, wound_tip_angle
 
     base = suturing_pad(size=(0.012, 0.012, 0.006), cells=(6, 6, 3), material=TissueMaterial(youngs, 0.45))
     needle = NeedleModel.from_shape()
@@ -227,7 +227,7 @@ def _press(youngs: float, force: float, solver: Solver, seconds: float = 0.4):
     center = np.array([0.0063, 0.0063 + needle.shape.curvature_radius, 0.006 + params.resistance_eps])
     scene = add_strands(
         base,
-        needle_arc_pose(needle, center, 0.0),
+        needle_circle_pose(needle, center, WOUND_ARC_AXIS, WOUND_ARC_U, wound_tip_angle(needle)),
         suture_params=SutureParams(length=0.02, node_count=21),
         suture_direction=(0.0, 0.0, 1.0),
         coupling_params=params,

@@ -59,6 +59,7 @@ from suture_gym.sim.scenes import (
     two_bar_wound,
 )
 from suture_gym.tasks import Observables, PlannedArc, plan_stitches
+from suture_gym.tasks.surgeon import circle_grip_target
 
 #: Most built scenes and most scripted-phase start states kept per simulation.
 CACHE_SIZE = 4
@@ -309,8 +310,7 @@ class Simulation:
     def arc_grip_target(self, arc: PlannedArc, tip_angle: float) -> tuple[np.ndarray, np.ndarray]:
         """Grip pose ``(position (3,) m, orientation (4,))`` of the needle lying on ``arc`` with its tip at
         ``tip_angle`` (rad)."""
-        pos, quat = needle_circle_pose(self.model.needle, arc.center, arc.axis, arc.u, tip_angle)
-        return pos + quat_rotate(quat, self.model.needle.grip_pos_body), quat
+        return circle_grip_target(self.model.needle, arc.center, arc.axis, arc.u, tip_angle)
 
     # ------------------------------------------------------------------------------------------------------
     # Observables

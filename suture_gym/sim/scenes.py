@@ -15,7 +15,7 @@ from suture_gym.sim.coupling import CouplingModel, CouplingParams
 from suture_gym.sim.mesh import TetMesh, box_tet_grid
 from suture_gym.sim.model import Model, State, TissueMaterial, TissueModel, TissueState
 from suture_gym.sim.needle import NeedleModel, NeedleShape, NeedleState
-from suture_gym.sim.quat import quat_from_axis_angle, quat_from_two_vectors, quat_mul, quat_normalize, quat_to_matrix
+from suture_gym.sim.quat import quat_from_two_vectors, quat_to_matrix
 from suture_gym.sim.rod import RodModel, RodState, SutureParams
 
 STANDARD_GRAVITY = 9.81  # m/s^2
@@ -354,28 +354,19 @@ def needle_circle_pose(
     return np.asarray(center, dtype=np.float64) - quat_to_matrix(quat) @ needle.arc_center_body, quat
 
 
-#: Needle orientation across the wound of :func:`two_bar_wound` (body to world): the needle's plane is the
-#: y-z plane, its crown up, the tip on the -y side pointing down; turning it about +x drives it tip first
-#: towards +y, across the wound (shape x -> world -y, shape y -> world +z, shape z -> world -x).
-WOUND_NEEDLE_QUAT = np.array([0.5, 0.5, -0.5, -0.5])
+#: The circle of a needle across the wound of :func:`two_bar_wound` (for :func:`needle_circle_pose`): its plane
+#: is the y-z plane, normal +x, angles measured from +y toward +z; turning the tip angle up drives the needle
+#: tip first from bar A's side (-y) across the wound towards +y.
+WOUND_ARC_AXIS = (1.0, 0.0, 0.0)
+WOUND_ARC_U = (0.0, 1.0, 0.0)
 
 
-def needle_arc_pose(
-    needle: NeedleModel, arc_center, angle: float, base_quat=WOUND_NEEDLE_QUAT, axis=(1.0, 0.0, 0.0)
-) -> tuple[np.ndarray, np.ndarray]:
-    """Pose ``(body_pos (3,) m, body_quat (4,))`` of a needle whose circle is centred at ``arc_center`` (3,) m,
-    turned by ``angle`` rad about ``axis`` (3,) from ``base_quat`` (4,): how a surgeon drives a curved needle,
-    about its own centre.
-
-    The same pose as :func:`needle_circle_pose` with the circle's frame taken from ``base_quat`` (for the
-    defaults: ``axis = +x``, ``u = +y``, tip at ``pi + angle - tau``), composed as quaternions instead; the two
-    agree to rounding (1e-16), and the scene measurements keep this arithmetic because the robustness runs
-    (:func:`~suture_gym.measure.interaction.hold_wrench`) are chaotic enough to change under such rounding.
-    """
-    axis = np.asarray(axis, dtype=np.float64)
-    quat = quat_normalize(quat_mul(quat_from_axis_angle(axis, float(angle)), np.asarray(base_quat, dtype=np.float64)))
-    pos = np.asarray(arc_center, dtype=np.float64) - quat_to_matrix(quat) @ needle.arc_center_body
-    return pos, quat
+def wound_tip_angle(needle: NeedleModel, angle: float = 0.0) -> float:
+    """Tip angle (rad) on the wound circle (:data:`WOUND_ARC_AXIS`, :data:`WOUND_ARC_U`) of ``needle`` turned
+    by ``angle`` rad from its rest pose across the wound: ``pi + angle - tau`` (``tau`` the shape's tip angle),
+    so that at ``angle = 0`` the needle's shape x axis points along -y, its crown up (shape y -> +z, shape
+    z -> -x) and, for the default needle (``tau = 0``), its tip is on bar A's side pointing down."""
+    return math.pi + angle - needle.shape.tip_angle
 
 
 def assemble(
@@ -429,7 +420,7 @@ def add_strands(
 
     Args:
         scene: a tissue scene (its tissue state is copied as the initial tissue state).
-        needle_pose: ``(body_pos (3,) m, body_quat (4,))`` of the needle at rest (see :func:`needle_arc_pose`).
+        needle_pose: ``(body_pos (3,) m, body_quat (4,))`` of the needle at rest (see :func:`needle_circle_pose`).
         needle_shape: :class:`~suture_gym.sim.needle.NeedleShape` (default: 26 mm half circle, 30 nodes).
         gravity_compensation: the haptic device carries the needle's weight.
         suture_params: :class:`~suture_gym.sim.rod.SutureParams`, or None for a needle alone.
@@ -527,7 +518,7 @@ def two_bar_suturing(
     The default needle (26 mm half circle, radius 8.3 mm) hangs over the middle of the wound in the plane
     ``x = length / 2`` with its circle centred ``centre_height`` above the top faces, over the middle of the
     gap, turned by ``angle`` (0: tip on bar A's side, 2 mm above it, pointing down; see
-    :data:`WOUND_NEEDLE_QUAT`). Turning it about +x through about 2 pi takes the needle through bar A, across
+    :func:`wound_tip_angle`). Turning it about +x through about 2 pi takes the needle through bar A, across
     the gap, through bar B and out. The suture (default 8 cm, 81 nodes) starts straight from the swage along
     ``suture_direction`` with its tail held (``suture_tail_pinned``) and/or a stopper knot ``suture_knot_tail``
     m from its free end (:func:`add_strands`).
@@ -537,15 +528,17 @@ def two_bar_suturing(
     the second bite dents bar B's wound face by about 6 mm while the needle turns, the axial load stays
     below 0.02 N and the tip slides off). The threshold counts the axial load on the tip, see
     :func:`~suture_gym.sim.coupling.coupling_finish`.
-    Settings add ``arc_center_m`` and ``stitch_x_m``.
+    Settings add the needle's circle (``arc_center_m``, ``arc_axis``, ``arc_u`` and the start ``tip_angle_rad``
+    for :func:`needle_circle_pose`), ``stitch_x_m`` and ``centre_height_m``.
     """
     base = two_bar_wound(bar_size=bar_size, cells=cells, gap=gap, material=material)
     length, width, height = (float(v) for v in bar_size)
     center = np.array([0.5 * length, width + 0.5 * gap, height + centre_height])
     needle = NeedleModel.from_shape()
+    tip_angle = wound_tip_angle(needle, angle)
     scene = add_strands(
         base,
-        needle_arc_pose(needle, center, angle),
+        needle_circle_pose(needle, center, WOUND_ARC_AXIS, WOUND_ARC_U, tip_angle),
         suture_params=suture_params or SutureParams(length=0.08, node_count=81),
         suture_direction=suture_direction,
         suture_tail_pinned=suture_tail_pinned,
@@ -554,6 +547,9 @@ def two_bar_suturing(
     )
     scene.settings["scene"] = "two_bar_suturing"
     scene.settings["arc_center_m"] = center.tolist()
+    scene.settings["arc_axis"] = list(WOUND_ARC_AXIS)
+    scene.settings["arc_u"] = list(WOUND_ARC_U)
+    scene.settings["tip_angle_rad"] = tip_angle
     scene.settings["stitch_x_m"] = 0.5 * length
     scene.settings["centre_height_m"] = centre_height
     return scene

@@ -9,8 +9,9 @@ held; over a running suture it lifts the needle and carries it to the next stitc
   constant force pulls the thread (:func:`pull_thread`);
 * the expert (:class:`ScriptedSurgeon`, ``agents.expert.ExpertPolicy``) acts through the env's action space
   (wrench or pose_delta) only;
-* the measurements (:mod:`suture_gym.measure.envs`, and :func:`pull_wrench` in
-  :mod:`suture_gym.measure.interaction`).
+* the measurements: :mod:`suture_gym.measure.envs` through the env, and the bare-scene stitch of
+  :mod:`suture_gym.measure.interaction` (``StitchController``), which turns the needle on the schedule of
+  :func:`turn_angles` toward the poses of :func:`circle_grip_target`, then pulls with :func:`pull_wrench`.
 
 The simulation ``sim`` the start-phase functions drive is a :class:`~suture_gym.envs.simulation.Simulation`.
 """
@@ -22,7 +23,8 @@ import math
 import numpy as np
 
 from suture_gym.sim.needle import NeedleModel, NeedleState, VirtualCoupling, needle_point_velocity
-from suture_gym.sim.quat import quat_conj, quat_mul, quat_rotation_vector
+from suture_gym.sim.quat import quat_conj, quat_mul, quat_rotate, quat_rotation_vector
+from suture_gym.sim.scenes import needle_circle_pose
 from suture_gym.tasks.geometry import PlannedArc
 
 #: Turn rate of the start-phase script, rad/s.
@@ -55,6 +57,21 @@ def swage_out_angle(arc: PlannedArc, needle_arc: float) -> float:
     return arc.exit_angle + needle_arc + CLEARANCE
 
 
+def turn_angles(start: float, end: float, dt: float, rate: float = TURN_RATE) -> list[float]:
+    """The turn's schedule: tip angles (rad) from ``start`` to ``end`` advancing at most ``rate`` rad/s, one per
+    control period of ``dt`` s (the first one period after ``start``, the last ``end``)."""
+    steps = max(1, int(math.ceil(abs(end - start) / (rate * dt))))
+    return [start + (end - start) * i / steps for i in range(1, steps + 1)]
+
+
+def circle_grip_target(needle: NeedleModel, center, axis, u, tip_angle: float) -> tuple[np.ndarray, np.ndarray]:
+    """The turn's target: grip pose ``(position (3,) m, orientation (4,))`` of ``needle`` lying on the circle
+    centred at ``center`` (3,) m of normal ``axis`` and angle origin ``u`` with its tip at ``tip_angle`` rad
+    (:func:`~suture_gym.sim.scenes.needle_circle_pose`)."""
+    pos, quat = needle_circle_pose(needle, center, axis, u, tip_angle)
+    return pos + quat_rotate(quat, needle.grip_pos_body), quat
+
+
 def pull_wrench(needle: NeedleModel, state: NeedleState, hold_quat: np.ndarray, force: np.ndarray, damping: float,
                 spring: VirtualCoupling) -> np.ndarray:
     """Grip wrench ``(6,) [N, N m]`` of a constant pull: ``force (3,) N - damping (N s/m) * grip velocity``, and
@@ -67,10 +84,9 @@ def pull_wrench(needle: NeedleModel, state: NeedleState, hold_quat: np.ndarray, 
 
 def turn(sim, arc: PlannedArc, start: float, end: float) -> None:
     """Turn ``sim``'s needle target about ``arc``'s centre from tip angle ``start`` to ``end`` (rad) at
-    :data:`TURN_RATE`, in whole env steps; stops early if the simulation diverges."""
-    steps = max(1, int(math.ceil(abs(end - start) / (TURN_RATE * sim.control_dt))))
-    for i in range(1, steps + 1):
-        sim.step_toward(*sim.arc_grip_target(arc, start + (end - start) * i / steps))
+    :data:`TURN_RATE`, one :func:`turn_angles` target per env step; stops early if the simulation diverges."""
+    for angle in turn_angles(start, end, sim.control_dt):
+        sim.step_toward(*circle_grip_target(sim.model.needle, arc.center, arc.axis, arc.u, angle))
         if sim.state.diverged:
             return
 
@@ -79,7 +95,7 @@ def pull_thread(sim, arc: PlannedArc, tip_angle: float, target: float) -> None:
     """Pull ``sim``'s needle along ``arc.pull_direction`` with :data:`PULL_FORCE` (damped by
     :data:`PULL_DAMPING`; orientation held at the pose of ``tip_angle`` rad) until ``target`` m of thread is
     through, for at most :data:`PULL_TIME` s."""
-    _, hold = sim.arc_grip_target(arc, tip_angle)
+    _, hold = circle_grip_target(sim.model.needle, arc.center, arc.axis, arc.u, tip_angle)
     force = PULL_FORCE * arc.pull_direction
     for _ in range(int(math.ceil(PULL_TIME / sim.control_dt))):
         if sim.thread_through() >= target or sim.state.diverged:
