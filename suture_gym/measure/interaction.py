@@ -18,12 +18,13 @@ from __future__ import annotations
 import functools
 import math
 import time
-from dataclasses import asdict, dataclass, field
+from dataclasses import asdict, dataclass, field, replace
 
 import numpy as np
 
 from suture_gym.measure.registry import CheckResult, benchmark, check
-from suture_gym.sim.collision import signed_distance
+from suture_gym.sim.bvh import build_bvh
+from suture_gym.sim.collision import TriangleSurface, signed_distance
 from suture_gym.sim.coupling import NODE_IN, ROW_PATH, CouplingParams, access_point
 from suture_gym.sim.model import Control, State, TissueMaterial
 from suture_gym.sim.needle import NeedleModel, VirtualCoupling, needle_point_velocity
@@ -53,6 +54,13 @@ from suture_gym.tasks.surgeon import circle_grip_target, pull_wrench, turn_angle
 
 DT = 1.0e-3  # s, substep of every run here
 GAP_WINDOW = {"x_range": 0.005, "depth": 0.01}  # m, wound faces near the stitch where the gap is measured
+
+
+def surface_at(surface: TriangleSurface, tissue_q: np.ndarray) -> TriangleSurface:
+    """``surface`` with a BVH built for the tissue positions ``tissue_q`` (N, 3) m, for exact signed distances at
+    the end of a substep (the model's BVH holds the rest shape; the solver's refitted copy holds the positions
+    of the last detection, before the projection moved them)."""
+    return replace(surface, bvh=build_bvh(surface.tri_vertices, tissue_q))
 
 
 @dataclass
@@ -221,7 +229,7 @@ class _StitchProbe:
         self.suture_in_nodes_max = max(self.suture_in_nodes_max, int(np.count_nonzero(status == NODE_IN)))
         free = status != NODE_IN
         if free.any():
-            sdist, _, _ = signed_distance(suture_nodes[free], model.coupling.surface, q)
+            sdist, _, _ = signed_distance(suture_nodes[free], surface_at(model.coupling.surface, q), q)
             self.outside_depth = max(self.outside_depth, float(max(0.0, -sdist.min())))
             self.inside_nodes += int(np.count_nonzero(sdist < 0.0))
 
@@ -355,7 +363,8 @@ def knotted_stitch() -> dict:
     def probe(sc: Scene, t: float) -> None:
         c = sc.state.coupling
         q = strand_now(sc)
-        depth, _, _ = signed_distance(q[tail], coupling.surface, sc.state.tissue.particle_q)
+        tissue_q = sc.state.tissue.particle_q
+        depth, _, _ = signed_distance(q[tail], surface_at(coupling.surface, tissue_q), tissue_q)
         log["tail_depth_max"] = max(log["tail_depth_max"], float(-depth.min()))
         if c.path_count == 0:
             return
