@@ -241,7 +241,8 @@ def test_divergence_sets_flag_without_raising():
 
 def test_large_substeps_stay_finite():
     model, state = _small_scene()
-    _run(model, state, 20, dt=2e-2)
+    with pytest.warns(UserWarning, match="unstable for this tissue"):
+        _run(model, state, 20, dt=2e-2)
     assert np.all(np.isfinite(state.tissue.particle_q)) and not state.diverged
 
 
