@@ -9,7 +9,7 @@ default 1 ms, where pushes of 0.2 N and more used to end in divergence within a 
 import numpy as np
 import pytest
 
-from suture_gym.measure.interaction import (
+from suture_gym.measure.puncture import (
     PAD_DT,
     PAD_PUNCTURE_FORCE,
     SETTLED_ANGULAR_SPEED,
