@@ -249,7 +249,7 @@ class Simulation:
             self._phase_cache.move_to_end(key)
             self.restore(cached)
             return
-        self.state = self._build.initial.snapshot()
+        self._load_state(self._build.initial)
         self._entries, self._exits = [], []
         if phase != self.task_cls.PHASES[0]:
             self.task_cls.start_phase(self, phase)
@@ -354,9 +354,19 @@ class Simulation:
             raise ValueError(f"snapshot must be a SimulationSnapshot, got {type(snapshot).__name__}")
         self._build = snapshot.build
         self.params = snapshot.params
-        self.state = snapshot.state.snapshot()
+        self._load_state(snapshot.state)
         self._entries = [e.copy() for e in snapshot.entries]
         self._exits = [e.copy() for e in snapshot.exits]
+
+    def _load_state(self, state: State) -> None:
+        """Make :attr:`state` a copy of ``state`` (which stays reusable). A state of the current scene's model is
+        overwritten in place, so it keeps the solver's buffers (``State.work``: rows, refitted BVHs, an implicit
+        tissue's factorised system) and a reset does not rebuild them."""
+        work = self.state.work
+        if work is not None and work.model is self._build.model:
+            self.state.restore(state)
+        else:
+            self.state = state.snapshot()
 
     def view_points(self) -> np.ndarray:
         """``(N, 3)`` points a camera should frame: the tissue at rest and the needle's start nodes, m."""
