@@ -1,8 +1,9 @@
 """What a task reads (:class:`Observables`), and the machinery shared by the tasks: named reward terms that sum
 exactly to the reward, events (punctures, exits), stitch bookkeeping, success, failure and goals.
 
-Tasks never step the physics: the simulation facade hands them an :class:`Observables` snapshot (copies of
-plain arrays, SI units) after every env step, and they return the reward terms and the episode flags. A task is
+During an episode a task never steps the physics: the simulation facade hands it an :class:`Observables`
+snapshot (copies of plain arrays, SI units) after every env step, and it returns the reward terms and the episode
+flags (only its ``start_phase`` hook drives the simulation, through :mod:`suture_gym.tasks.surgeon`). A task is
 the unit of extension: one class declares its env id, time limit and config defaults (``ENV_ID``,
 ``MAX_EPISODE_STEPS``, ``CONFIG``, an optional section of its own, ``PARAMS``), its reward terms (one
 ``term_<name>(ctx)`` method per name in ``TERMS``, reading the :class:`StepContext` of the step), its config
