@@ -431,6 +431,10 @@ class ImplicitTissue:
         self.dt = float(dt)
         self.inv_h2 = 1.0 / (self.dt * self.dt)
         self.free = _free_dofs(tissue)
+        #: Each roller's constrained axis and the coordinate that puts its particle on its plane (m).
+        normal = tissue.roller_normal
+        self.roller_axis = np.argmax(np.abs(normal), axis=1)
+        self.roller_value = tissue.roller_offset / normal[np.arange(self.roller_axis.size), self.roller_axis]
         self.free_index = np.flatnonzero(self.free.ravel())
         mass = np.repeat(tissue.particle_mass, 3)
         stiffness = stiffness_matrix(tissue)
@@ -446,10 +450,7 @@ class ImplicitTissue:
     def begin(self, q: np.ndarray, gravity: np.ndarray) -> None:
         """Store the inertial target ``y`` (the predicted ``q``) and move ``q`` to the warm start
         ``y - h^2 g = x_prev + h v`` on the free dofs. Axis-aligned roller axes are set on their planes."""
-        tissue = self.tissue
-        for p, normal, offset in zip(tissue.roller_particle, tissue.roller_normal, tissue.roller_offset, strict=True):
-            axis = int(np.argmax(np.abs(normal)))
-            q[p, axis] = offset / normal[axis]
+        q[self.tissue.roller_particle, self.roller_axis] = self.roller_value
         self.y[...] = q
         self.external[...] = 0.0
         q -= np.where(self.free, gravity[None, :] * (self.dt * self.dt), 0.0)
