@@ -13,6 +13,7 @@ from suture_gym.sim.tissue import (
     neo_hookean_constraints,
     node_gradients,
     project_rollers,
+    project_supports,
     project_tets,
     tet_elastic_energy,
     tet_residual,
@@ -266,3 +267,40 @@ def test_residual_is_zero_for_a_converged_rest_state():
     _sweep(a, q, multiplier, 1e-3)
     r = tet_residual(a["tets"], a["dm_inv"], a["volume"], a["mu"], a["lam"], a["order"], q, multiplier, 1e-3)
     assert r < 1e-12
+
+
+def test_supports_hold_free_particles_on_the_allowed_side_and_leave_pinned_ones():
+    normal, offset = np.array([[0.0, 0.0, 1.0], [1.0, 0.0, 0.0]]), np.array([0.0, -0.01])
+    q = np.array([[0.1, 0.2, -0.003], [-0.02, 0.0, 0.5], [0.0, 0.0, -1.0], [0.3, 0.3, 0.3]])
+    inv_mass = np.array([1.0, 1.0, 0.0, 1.0])
+    expected = q.copy()
+    expected[0, 2] = 0.0  # below the base: moved straight up onto it, keeping x and y
+    expected[1, 0] = -0.01  # behind the second plane: moved onto it
+    project_supports(inv_mass, normal, offset, q)
+    assert np.array_equal(q, expected)  # the pinned particle 2 is left below the base
+
+
+def test_supports_are_validated_and_normalised():
+    mesh = box_tet_grid((0.01, 0.01, 0.01), (1, 1, 1))
+    model = TissueModel.from_mesh(mesh, TissueMaterial(), supports=([[0.0, 0.0, 2.0]], [0.0]))
+    assert np.array_equal(model.support_normal, [[0.0, 0.0, 1.0]])
+    with pytest.raises(ValueError, match="support normals"):
+        TissueModel.from_mesh(mesh, TissueMaterial(), supports=([[0.0, 0.0, 0.0]], [0.0]))
+    with pytest.raises(ValueError, match="support normals"):
+        TissueModel.from_mesh(mesh, TissueMaterial(), supports=([0.0, 0.0, 1.0], [0.0]))
+
+
+@pytest.mark.parametrize("integrator", ["xpbd", "quasi_newton"])
+def test_pad_base_is_a_contact_for_both_integrators(integrator):
+    from suture_gym.sim.model import Control
+    from suture_gym.sim.scenes import suturing_pad, two_bar_wound
+    from suture_gym.sim.solver import Solver
+
+    assert two_bar_wound(cells=(4, 2, 2)).model.tissue.support_offset.size == 1
+    assert two_bar_wound(cells=(4, 2, 2), base=False).model.tissue.support_offset.size == 0
+    scene = suturing_pad(size=(0.008, 0.008, 0.004), cells=(4, 4, 2), material=TissueMaterial(3.0e3, 0.45))
+    tissue, q = scene.model.tissue, scene.state.tissue.particle_q
+    free = np.flatnonzero(tissue.particle_inv_mass > 0)
+    scene.state.tissue.particle_qd[free, 2] = -20.0  # m/s: one substep would carry them 2 cm below the base
+    Solver(tissue_integrator=integrator).step(scene.model, scene.state, Control(), 1e-3)
+    assert q[free, 2].min() >= 0.0

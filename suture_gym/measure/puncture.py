@@ -79,9 +79,17 @@ def pad_with_needle(material: TissueMaterial | None = None, coupling_params: Cou
     )
 
 
-def push_tip(scene: Scene, force: float, dt: float, ramp: float, hold: float, damping: float = SWEEP_DAMPING) -> dict:
+def push_tip(
+    scene: Scene,
+    force: float,
+    dt: float,
+    ramp: float,
+    hold: float,
+    damping: float = SWEEP_DAMPING,
+    solver: Solver | None = None,
+) -> dict:
     """Push the needle tip of ``scene`` straight down with a force ramped to ``force`` N over ``ramp`` s, then
-    held for ``hold`` s, at substep ``dt`` s.
+    held for ``hold`` s, at substep ``dt`` s, stepped by ``solver`` (default ``Solver()``).
 
     The push acts at the tip (the force at the grip plus the moment ``(tip - grip) x F``, with a vertical
     damping ``damping`` N s/m of the tip's velocity), so the tip's contact does not turn the needle and the
@@ -94,7 +102,7 @@ def push_tip(scene: Scene, force: float, dt: float, ramp: float, hold: float, da
     grip = state.needle.body_pos + quat_to_matrix(state.needle.body_quat) @ needle.grip_pos_body
     quat = state.needle.body_quat.copy()
     tip_z0 = float((state.needle.body_pos + quat_to_matrix(quat) @ needle.tip_pos_body)[2])
-    solver, control = Solver(), Control()
+    solver, control = solver or Solver(), Control()
     peak = dent = 0.0
     for k in range(int(round((ramp + hold) / dt))):
         push = np.array([0.0, 0.0, -force * min(1.0, k * dt / ramp)])

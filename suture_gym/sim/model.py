@@ -111,6 +111,9 @@ class TissueModel:
         roller_particle: ``(R,) int32`` particles held on a plane (frictionless sliding support).
         roller_normal: ``(R, 3) float64`` unit normals of those planes.
         roller_offset: ``(R,) float64`` plane offsets ``d`` in ``n . x = d``, m.
+        support_normal: ``(S, 3) float64`` unit normals of rigid half-spaces the tissue rests on (the base of a
+            pad): no free particle goes to ``n . x < d``; a one-sided, frictionless contact.
+        support_offset: ``(S,) float64`` their offsets ``d``, m.
     """
 
     particle_rest_q: np.ndarray
@@ -129,6 +132,8 @@ class TissueModel:
     roller_particle: np.ndarray
     roller_normal: np.ndarray
     roller_offset: np.ndarray
+    support_normal: np.ndarray = field(default_factory=lambda: np.zeros((0, 3)))
+    support_offset: np.ndarray = field(default_factory=lambda: np.zeros(0))
 
     def __post_init__(self) -> None:
         """Store read-only C-contiguous copies after checking dtypes, shapes and index ranges.
@@ -184,6 +189,7 @@ class TissueModel:
         pinned: np.ndarray | None = None,
         tet_material: np.ndarray | None = None,
         rollers: tuple[np.ndarray, np.ndarray, np.ndarray] | None = None,
+        supports: tuple[np.ndarray, np.ndarray] | None = None,
     ) -> TissueModel:
         """Build the tissue model of a mesh.
 
@@ -196,6 +202,9 @@ class TissueModel:
             rollers: optional ``(particles (R,) int, normals (R, 3), offsets (R,) m)``: each listed particle
                 is kept on the plane ``n . x = d`` and slides on it without friction (a roller support). A
                 particle may appear on several planes with orthogonal normals; normals are normalised here.
+            supports: optional ``(normals (S, 3), offsets (S,) m)``: rigid half-spaces ``n . x >= d`` no free
+                particle may leave (the rigid base a pad is glued to: a contact, so the tissue cannot be pushed
+                through it). Normals are normalised here.
 
         Returns:
             The frozen model. Tets are coloured for Gauss-Seidel order; boundary triangles are extracted.
@@ -219,6 +228,7 @@ class TissueModel:
         inv_mass = np.where(pinned, 0.0, 1.0 / mass)
 
         roller_particle, roller_normal, roller_offset = _rollers(rollers, n)
+        support_normal, support_offset = _supports(supports)
         # Tets whose four nodes are all pinned can never move: they are left out of the Gauss-Seidel order.
         active = np.flatnonzero(inv_mass[mesh.tets].sum(axis=1) > 0)
         active_order, offsets = color_constraints(mesh.tets[active], n)
@@ -241,6 +251,8 @@ class TissueModel:
             roller_particle=roller_particle,
             roller_normal=roller_normal,
             roller_offset=roller_offset,
+            support_normal=support_normal,
+            support_offset=support_offset,
         )
 
 
@@ -262,6 +274,8 @@ _TISSUE_FIELDS: dict[str, tuple[type, tuple]] = {
     "roller_particle": (np.int32, ("R",)),
     "roller_normal": (np.float64, ("R", 3)),
     "roller_offset": (np.float64, ("R",)),
+    "support_normal": (np.float64, ("S", 3)),
+    "support_offset": (np.float64, ("S",)),
 }
 
 #: Index fields and the dimension they index into.
@@ -319,6 +333,23 @@ def _rollers(rollers, particle_count: int) -> tuple[np.ndarray, np.ndarray, np.n
     if not (np.all(np.isfinite(length)) and np.all(length > 0) and np.all(np.isfinite(offset))):
         raise ValueError("roller normals must be finite and non-zero and offsets finite")
     return particle.astype(np.int32), normal / length[:, None], offset
+
+
+def _supports(supports) -> tuple[np.ndarray, np.ndarray]:
+    """Validated support half-spaces ``(unit normal (S, 3), offset (S,))``."""
+    if supports is None:
+        return np.zeros((0, 3)), np.zeros(0)
+    if len(supports) != 2:
+        raise ValueError("supports must be a tuple (normals, offsets)")
+    normal = np.asarray(supports[0], dtype=np.float64)
+    offset = np.asarray(supports[1], dtype=np.float64)
+    if normal.ndim != 2 or normal.shape[1:] != (3,) or offset.shape != normal.shape[:1]:
+        raise ValueError(f"support normals must be (S, 3) and offsets (S,), got {normal.shape}, {offset.shape}")
+    length = np.linalg.norm(normal, axis=1)
+    if not (np.all(np.isfinite(length)) and np.all(length > 0) and np.all(np.isfinite(offset))):
+        raise ValueError(f"support normals must be finite and non-zero and offsets finite, got {normal.tolist()}, "
+                         f"{offset.tolist()}")
+    return normal / length[:, None], offset
 
 
 @dataclass

@@ -56,9 +56,10 @@ def _scene(
     regions: dict[str, np.ndarray],
     settings: dict,
     rollers=None,
+    supports=None,
 ) -> Scene:
     """Model, rest state, regions (boolean masks turned into index arrays) and settings of a scene."""
-    tissue = TissueModel.from_mesh(mesh, material, pinned=pinned, rollers=rollers)
+    tissue = TissueModel.from_mesh(mesh, material, pinned=pinned, rollers=rollers, supports=supports)
     model = Model(tissue=tissue, gravity=gravity)
     state = State(tissue=TissueState.at_rest(tissue))
     settings = {
@@ -70,6 +71,11 @@ def _scene(
     }
     indices = {name: np.flatnonzero(mask).astype(np.int32) for name, mask in regions.items()}
     return Scene(model=model, state=state, regions=indices, settings=settings)
+
+
+#: The rigid base ``z >= 0`` a pad or the bars rest on (``TissueModel.from_mesh`` ``supports``): a contact, not
+#: only the pinned bottom nodes, so a push cannot drive tissue through it.
+_BASE = (np.array([[0.0, 0.0, 1.0]]), np.array([0.0]))
 
 
 def _check_positive(name: str, value: float) -> float:
@@ -211,7 +217,8 @@ def two_bar_wound(
     ``y in [0, width]``, the right bar ``y in [width + gap, 2 width + gap]``; both span ``x in [0, length]``
     and ``z in [0, height]``. The wound is the gap between the faces ``y = width`` and ``y = width + gap``.
     Both end faces (``x = 0`` and ``x = length``) of each bar are pinned, as in the paper; with ``base`` the
-    bottom faces (``z = 0``) are pinned too, i.e. the tissue rests on a rigid base (docs/design.md, "Departures
+    bottom faces (``z = 0``) are pinned too and the base ``z >= 0`` is a contact (no free particle is pushed
+    through it), i.e. the tissue rests on a rigid base (docs/design.md, "Departures
     from the brief": the default 1 kPa tissue would otherwise sag by about its own height).
 
     Regions: ``left_wound_face``, ``right_wound_face`` (the facing long faces), ``left_bar``, ``right_bar``
@@ -250,7 +257,8 @@ def two_bar_wound(
         "scheme": scheme,
         "base": base,
     }
-    return _scene(mesh, material, pinned, (0.0, 0.0, -gravity), regions, settings)
+    supports = _BASE if base else None
+    return _scene(mesh, material, pinned, (0.0, 0.0, -gravity), regions, settings, supports=supports)
 
 
 def paper_cube(
@@ -291,9 +299,10 @@ def suturing_pad(
     """A block of tissue glued to a rigid base: a suturing practice pad.
 
     Geometry: ``x in [0, size_x]``, ``y in [0, size_y]``, ``z in [0, size_z]``; the bottom face ``z = 0`` is
-    pinned; gravity ``(0, 0, -gravity)``. Default material :data:`PAD_MATERIAL` (30 kPa, nu = 0.45) in 5 mm
-    cells: it needs substeps of 0.5 ms to stay at rest and 0.25 ms under a needle pushed into it with
-    several newtons (see the stability notes of :mod:`suture_gym.sim.solver`).
+    pinned and the base ``z >= 0`` is a contact no free particle is pushed through; gravity
+    ``(0, 0, -gravity)``. Default material :data:`PAD_MATERIAL` (30 kPa, nu = 0.45) in 5 mm cells: it needs
+    substeps of 0.5 ms to stay at rest and 0.25 ms under a needle pushed into it with several newtons (see the
+    stability notes of :mod:`suture_gym.sim.solver`).
 
     Regions: ``top`` (the ``z = size_z`` face), ``pinned`` (the bottom face).
     """
@@ -306,9 +315,8 @@ def suturing_pad(
     tol = 1e-9 * max(sx, sy, sz)
     pinned = np.abs(z) <= tol
     settings = {"scene": "suturing_pad", "size_m": [sx, sy, sz], "cells": [int(c) for c in cells], "scheme": scheme}
-    return _scene(
-        mesh, material, pinned, (0.0, 0.0, -gravity), {"top": np.abs(z - sz) <= tol, "pinned": pinned}, settings
-    )
+    regions = {"top": np.abs(z - sz) <= tol, "pinned": pinned}
+    return _scene(mesh, material, pinned, (0.0, 0.0, -gravity), regions, settings, supports=_BASE)
 
 
 def _quat_from_matrix(r: np.ndarray) -> np.ndarray:

@@ -104,6 +104,7 @@ from suture_gym.sim.rod import friction_kernel, rod_detect_contacts, rod_predict
 from suture_gym.sim.tissue import (
     XPBD_STABILITY_LIMIT,
     project_rollers,
+    project_supports,
     project_tets,
     tet_residual,
     xpbd_stability_number,
@@ -438,7 +439,10 @@ class Solver:
         the solve would start where the last one ended, under the same forces, and only refine its quasi-Newton
         iterate (the tissue checks validate one solve per substep). The earlier sweeps exist to let the tissue
         carry the rows' load, so the suture's direct solve, which converges on its own over its iterations,
-        runs in the last sweep only (measured on WoundClosure at 100 kPa: 1.3x the env steps/s, no divergence)."""
+        runs in the last sweep only (measured on WoundClosure at 100 kPa: 1.3x the env steps/s, no divergence).
+
+        Every sweep ends with the tissue's rigid supports (:func:`~suture_gym.sim.tissue.project_supports`): the
+        base is a contact the rows and the elastic solve cannot push particles through."""
         tissue, tissue_state = model.tissue, state.tissue
         if self._implicit(model):
             self._project_implicit(model, state, dt, first_sweep, last_sweep)
@@ -467,6 +471,9 @@ class Solver:
                 self._project_coupling(model, state, dt)
             if model.suture is not None:
                 self._project_suture(model, state, dt)
+        if tissue is not None and tissue.support_offset.size:
+            project_supports(tissue.particle_inv_mass, tissue.support_normal, tissue.support_offset,
+                             tissue_state.particle_q)  # fmt: skip
 
     def _project_implicit(self, model: Model, state: State, dt: float, first_sweep: bool, last_sweep: bool) -> None:
         """:meth:`_project` with an implicit tissue integrator (see there): the elastic solve, the coupling rows

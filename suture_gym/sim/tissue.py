@@ -381,3 +381,26 @@ def xpbd_stability_number(tissue, dt: float) -> float:
     edges = [np.linalg.norm(corners[:, a] - corners[:, b], axis=1) for a in range(4) for b in range(a + 1, 4)]
     shortest = np.min(edges, axis=0)
     return float(np.max(dt * np.sqrt(youngs / density) / shortest))
+
+
+@njit(cache=True)
+def project_supports(inv_mass: np.ndarray, normal: np.ndarray, offset: np.ndarray, q: np.ndarray) -> None:
+    """Rigid, frictionless, one-sided supports: every free particle with ``n . x < d`` is moved onto the plane
+    (``x -= (n . x - d) n``); the support has infinite mass, so the whole correction goes to the particle.
+
+    Args:
+        inv_mass: ``(N,)`` inverse masses, 1/kg (pinned particles are left alone).
+        normal: ``(S, 3)`` unit normals pointing into the allowed side.
+        offset: ``(S,)`` plane offsets ``d``, m.
+        q: ``(N, 3)`` positions, m; projected in place.
+    """
+    for s in range(normal.shape[0]):
+        n0, n1, n2 = normal[s, 0], normal[s, 1], normal[s, 2]
+        for p in range(q.shape[0]):
+            if inv_mass[p] == 0.0:
+                continue
+            c = n0 * q[p, 0] + n1 * q[p, 1] + n2 * q[p, 2] - offset[s]
+            if c < 0.0:
+                q[p, 0] -= c * n0
+                q[p, 1] -= c * n1
+                q[p, 2] -= c * n2
