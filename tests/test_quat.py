@@ -4,6 +4,7 @@ import numpy as np
 import pytest
 
 from suture_gym.sim.quat import (
+    cross3,
     quat_conj,
     quat_from_axis_angle,
     quat_from_rotation_vector,
@@ -104,3 +105,9 @@ def test_turn_into_matches_product_and_may_alias():
         q_alias = q.copy()
         quat_turn_into(q_alias, theta, q_alias)
         np.testing.assert_array_equal(q_alias, out)
+
+
+def test_cross3_matches_numpy_bit_for_bit():
+    rng = np.random.default_rng(7)
+    for a, b in rng.standard_normal((50, 2, 3)):
+        assert np.array_equal(cross3(a, b), np.cross(a, b))

@@ -34,6 +34,7 @@ import numpy as np
 
 from suture_gym.sim.checks import finite_array, is_real, require_non_negative, require_positive
 from suture_gym.sim.quat import (
+    cross3,
     quat_conj,
     quat_mul,
     quat_normalize,
@@ -336,7 +337,7 @@ def wrench_at_com(model: NeedleModel, state: NeedleState, wrench) -> tuple[np.nd
     """
     w = check_wrench(wrench)
     force = w[:3].copy()
-    return force, w[3:] + np.cross(grip_offset_world(model, state), force)
+    return force, w[3:] + cross3(grip_offset_world(model, state), force)
 
 
 def needle_predict(model: NeedleModel, state: NeedleState, wrench, dt: float, gravity) -> None:
@@ -392,7 +393,7 @@ def needle_constraint_wrench(model: NeedleModel, state: NeedleState, dt: float) 
     dtheta = quat_rotation_vector(quat_mul(state.body_quat, quat_conj(state.body_quat_pred)))
     r = quat_to_matrix(state.body_quat)
     torque_com = r @ model.body_inertia @ r.T @ dtheta / (dt * dt)
-    return np.concatenate([force, torque_com - np.cross(grip_offset_world(model, state), force)])
+    return np.concatenate([force, torque_com - cross3(grip_offset_world(model, state), force)])
 
 
 def needle_node_positions(model: NeedleModel, state: NeedleState, out: np.ndarray | None = None) -> np.ndarray:
@@ -411,7 +412,7 @@ def needle_point_world(model: NeedleModel, state: NeedleState, point_body) -> np
 def needle_point_velocity(model: NeedleModel, state: NeedleState, point_body) -> np.ndarray:
     """World velocity (3,) m/s of a body-frame point: ``v + omega x r``."""
     r = quat_rotate(state.body_quat, np.asarray(point_body, dtype=np.float64))
-    return state.body_vel + np.cross(state.body_omega, r)
+    return state.body_vel + cross3(state.body_omega, r)
 
 
 def needle_point_inv_mass(model: NeedleModel, state: NeedleState, point_world, direction) -> float:
