@@ -620,6 +620,16 @@ def test_contact_floors_bound_only_penetrations_older_than_the_substep():
     assert _floor(2.5e-4, 1e-4) == 0.0  # within reach: fully resolved
 
 
+def no_patch():
+    """An empty tip contact patch (``CouplingWork.tip_patch``): the anchor is a point of its triangle."""
+    return (np.zeros(4, np.int32), np.zeros(4), np.zeros(1, np.int64), np.zeros(3), np.zeros(1))
+
+
+def no_cut():
+    """No cutting row (``CouplingWork.cut_rows`` with cap 0)."""
+    return (np.zeros(4, np.int32), np.zeros(4), np.zeros(3), np.zeros(1), np.zeros(1))
+
+
 def _anchor_projection(friction, offset, penetration=1e-4, eps=3e-4):
     """Project one anchor row of the default needle's tip against a static (pinned) triangle whose anchor
     point lies ``offset`` (m) along +x of the tip's foot and ``penetration`` (m) above the contact layer."""
@@ -640,7 +650,7 @@ def _anchor_projection(friction, offset, penetration=1e-4, eps=3e-4):
         (np.zeros(3), tissue_q.copy(), np.array([[0, 1, 2]], np.int32)),
         (np.zeros(nn), eps, 1e-3, friction, 4.0),
         (kind, np.zeros(nn, np.int32), bary, normals, np.zeros(nn), np.zeros((nn, 8), np.int32), np.zeros((nn, 8)),
-         np.zeros((nn, 3)), lam, lam_t),
+         np.zeros((nn, 3)), lam, lam_t, no_patch(), no_cut()),
         slip, pos, quat, tissue_q,
     )  # fmt: skip
     new_tip = pos + quat_to_matrix(quat) @ needle.node_pos_body[0]
@@ -683,7 +693,7 @@ def test_a_path_row_transmits_at_most_the_tear_force():
         (np.zeros(4), tissue_q.copy(), np.zeros((1, 3), np.int32)),
         (np.zeros(nn), 3e-4, dt, 0.0, tear),
         (kind, np.zeros(nn, np.int32), np.zeros((nn, 3)), np.zeros((nn, 3)), np.zeros(nn), idx, weight, tangent, lam,
-         np.zeros(nn)),
+         np.zeros(nn), no_patch(), no_cut()),
         np.zeros(4), pos, quat, tissue_q,
     )  # fmt: skip
     assert lam[5] == pytest.approx(-tear * dt * dt, rel=1e-12)

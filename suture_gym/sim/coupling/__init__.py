@@ -106,14 +106,15 @@ from suture_gym.sim.coupling.detection import (
     coupling_detect,
     rigid_crossings,
 )
-from suture_gym.sim.coupling.model import CouplingModel, CouplingState, CouplingWork
-from suture_gym.sim.coupling.needle_projection import project_needle_rows
+from suture_gym.sim.coupling.model import CouplingModel, CouplingState, CouplingWork, tip_series_compliance
+from suture_gym.sim.coupling.needle_projection import project_cutting, project_needle_rows
 from suture_gym.sim.coupling.params import (
     NODE_HEAD,
     NODE_IN,
     NODE_OUT,
     PATH_ROW_VERTICES,
     ROW_ANCHOR,
+    ROW_EXIT,
     ROW_NONE,
     ROW_PATH,
     ROW_TRIANGLE,
@@ -130,6 +131,7 @@ from suture_gym.sim.coupling.paths import (
     surface_point_tet,
     tip_crossing,
     tip_events,
+    tip_patch,
     update_tip_anchor,
 )
 from suture_gym.sim.coupling.readings import coupling_finish
@@ -152,6 +154,7 @@ __all__ = [
     "NODE_OUT",
     "PATH_ROW_VERTICES",
     "ROW_ANCHOR",
+    "ROW_EXIT",
     "ROW_NONE",
     "ROW_PATH",
     "ROW_TRIANGLE",
@@ -172,6 +175,7 @@ __all__ = [
     "path_node_kinematics",
     "path_spacing_count",
     "project_access_rows",
+    "project_cutting",
     "project_needle_rows",
     "project_onto_path",
     "project_suture_path_rows",
@@ -183,6 +187,8 @@ __all__ = [
     "suture_contact_rows",
     "tip_crossing",
     "tip_events",
+    "tip_patch",
+    "tip_series_compliance",
     "tissue_point",
     "track_sigma",
     "update_tip_anchor",

@@ -19,6 +19,7 @@ from suture_gym.sim.coupling.params import (
     NODE_IN,
     NODE_OUT,
     ROW_ANCHOR,
+    ROW_EXIT,
     ROW_NONE,
     ROW_PATH,
     ROW_TRIANGLE,
@@ -192,11 +193,11 @@ def contact_frames(
 ):
     """Unit contact normal of every contact row at detection, at its surface point (``row_tri``, ``row_bary``):
     the face normal of a rigid triangle (``tri_rigid``), the smooth normal (:func:`surface_normal`) of a
-    deforming one; turned inward for ROW_WALL. A row whose normal is undefined (a collapsed neighbourhood)
+    deforming one; turned inward for the rows from the inside (ROW_WALL, ROW_EXIT). A row whose normal is undefined (a collapsed neighbourhood)
     is dropped (ROW_NONE). Writes ``row_normal`` (M, 3); updates ``row_kind``."""
     for i in range(row_kind.shape[0]):
         kind = row_kind[i]
-        if kind != ROW_TRIANGLE and kind != ROW_WALL and kind != ROW_ANCHOR:
+        if kind != ROW_TRIANGLE and kind != ROW_WALL and kind != ROW_ANCHOR and kind != ROW_EXIT:
             continue
         tri = row_tri[i]
         if tri_rigid[tri]:
@@ -210,7 +211,7 @@ def contact_frames(
         if not (n[0] != 0.0 or n[1] != 0.0 or n[2] != 0.0):
             row_kind[i] = ROW_NONE
             continue
-        row_normal[i] = -n if kind == ROW_WALL else n
+        row_normal[i] = -n if kind == ROW_WALL or kind == ROW_EXIT else n
 
 
 @njit(cache=True)
@@ -240,7 +241,7 @@ def contact_floors(needle_node_count, eps, depenetration, contact_rows, tri_vert
     for i in range(row_kind.shape[0]):
         out_floor[i] = 0.0
         kind = row_kind[i]
-        if kind != ROW_TRIANGLE and kind != ROW_ANCHOR and kind != ROW_WALL:
+        if kind != ROW_TRIANGLE and kind != ROW_ANCHOR and kind != ROW_WALL and kind != ROW_EXIT:
             continue
         if i < nn:
             q0 = needle_pos_prev + r @ needle_node_body[i]
@@ -301,7 +302,7 @@ def coupling_detect(
     track_access_points(model, state, tissue_q, strand_q)
     release_finished_paths(model, state, tissue_q, strand_q[0])
     tip_events(model, state, work, tissue, tissue_q, strand_q[0])
-    update_tip_anchor(model, state, tissue_q, strand_q[0])
+    update_tip_anchor(model, state, tissue_q, strand_q)
     path_node_kinematics(
         state.pathnode_tet, state.pathnode_bary, tissue.tet_indices, tissue_q, state.path_first, state.path_len,
         state.path_count, work.pathnode_q, work.pathnode_tangent,
@@ -326,6 +327,8 @@ def coupling_detect(
     work.row_friction_lambda[:] = 0.0
     work.access_lambda[:] = 0.0
     work.tip_friction[:] = 0.0
+    _tip_patch_row(state, work)
+    _cutting_row(model, state, work, tissue.tet_indices, strand_q)
 
 
 def strand_distances(
@@ -369,8 +372,46 @@ def _wall_and_anchor_rows(model: CouplingModel, state: CouplingState, work: Coup
     if state.tip_anchor_tri >= 0 and work.row_kind[0] != ROW_PATH:
         in_access = np.any((work.access_node[: work.access_count] == 0) & (work.access_weight[: work.access_count] > 0))
         if not in_access:
-            work.row_kind[0] = ROW_ANCHOR
+            work.row_kind[0] = ROW_EXIT if state.tip_anchor_inside else ROW_ANCHOR
             work.row_tri[0] = state.tip_anchor_tri
+    if work.row_kind[0] == ROW_ANCHOR and state.tip_patch_count > 0:
+        # the tip-contact row stands for the whole taper: no rows of its own for the nodes behind the point
+        taper = (model.strand_sigma[1:nn] <= model.params.tip_length) & (work.row_kind[1:nn] == ROW_TRIANGLE)
+        work.row_kind[1:nn][taper] = ROW_NONE
     work.row_bary[:] = state.strand_bary
-    if work.row_kind[0] == ROW_ANCHOR:
+    if work.row_kind[0] == ROW_ANCHOR or work.row_kind[0] == ROW_EXIT:
         work.row_bary[0] = state.tip_anchor_bary
+
+
+def _tip_patch_row(state: CouplingState, work: CouplingWork) -> None:
+    """This substep's copy of the tip's contact patch (``state.tip_patch_*``) for the anchor row; an empty
+    patch (the anchor is a point of its triangle) unless the tip's row is a ROW_ANCHOR."""
+    vertex, weight, count, offset, compliance = work.tip_patch
+    count[0] = state.tip_patch_count if work.row_kind[0] == ROW_ANCHOR else 0
+    vertex[:] = state.tip_patch_vertex
+    weight[:] = state.tip_patch_weight
+    offset[:] = state.tip_patch_offset
+    compliance[0] = state.tip_patch_compliance if count[0] > 0 else 0.0
+
+
+def _cutting_row(model: CouplingModel, state: CouplingState, work: CouplingWork, tet_indices, strand_q) -> None:
+    """The tip's cutting row this substep (``CouplingWork.cut_rows``): while a path is open and the tip has no
+    contact row (it is not held by an exit anchor or a rigid face), a cap of ``cutting_force`` against its advance
+    along its direction (from strand node 1 to the tip, ``strand_q`` (M, 3) m) relative to the tissue at the
+    open path's last node (tet ``tet_indices`` (T, 4) and barycentrics); cap 0 otherwise."""
+    tissue_idx, tissue_w, direction, cap, lam = work.cut_rows
+    cap[0] = 0.0
+    lam[0] = 0.0
+    force = model.params.cutting_force
+    if force <= 0.0 or not state.punctured or work.row_kind[0] != ROW_NONE:
+        return
+    k = state.path_count - 1
+    last = state.path_first[k] + state.path_len[k] - 1
+    chord = strand_q[0] - strand_q[1]
+    length = float(np.linalg.norm(chord))
+    if last < state.path_first[k] or length <= TINY_LENGTH:
+        return
+    tissue_idx[:] = tet_indices[state.pathnode_tet[last]]
+    tissue_w[:] = state.pathnode_bary[last]
+    direction[:] = chord / length
+    cap[0] = force

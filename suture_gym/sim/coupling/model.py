@@ -18,6 +18,8 @@ from suture_gym.sim.coupling.params import (
     NODE_HEAD,
     NODE_OUT,
     PATH_ROW_VERTICES,
+    TIP_PATCH_CAPACITY,
+    TIP_PATCH_CELLS,
     CouplingParams,
 )
 
@@ -37,12 +39,21 @@ class CouplingModel:
         strand_sigma: ``(M,) float64`` material coordinate of each strand node, m: rest arc length from the tip.
         strand_seg_length: ``(M-1,) float64`` rest length of each strand segment, m.
         strand_friction: ``(M,) float64`` kinetic axial friction cap of each strand node, N
-            (``needle_axial_friction`` times the node's share of needle length; 0 for suture nodes).
+            (``needle_axial_friction`` times the node's share of needle length; 0 for suture nodes: the thread
+            slides through its paths without friction).
         tri_tet_local: ``(F, 3) int8`` local index (0-3) in its tet of each vertex of each boundary triangle.
         tri_rigid: ``(F,) bool`` boundary triangles whose three vertices are pinned: faces glued to a rigid
             support (the base under the tissue, a clamp), which the strand can neither pierce nor leave through.
         surface: :class:`~suture_gym.sim.collision.TriangleSurface` of the tissue boundary (BVH at rest).
         tet_bvh: :class:`~suture_gym.sim.bvh.BVH` over the tissue tets at rest (path-node location).
+        tissue_rest_q: ``(N, 3) float64`` the tissue's rest positions, m (the tissue model's array).
+        surface_vertex: ``(Vs,) int32`` the tissue vertices on the boundary; surface_vertex_area: ``(Vs,)
+            float64`` their lumped rest areas (a third of each boundary triangle's), m^2: the weights of a
+            uniform pressure over the tip's contact patch (:func:`~suture_gym.sim.coupling.paths.tip_patch`).
+        tip_patch_radius: m, the radius of the tip's contact patch, ``max(tip_contact_radius,
+            TIP_PATCH_CELLS * mean boundary edge length)`` (0 with the tip-contact model off).
+        tri_tip_compliance: ``(F,) float64`` the tip's series compliance on each boundary triangle, m/N
+            (:func:`tip_series_compliance` with the material of the triangle's tet; zeros with the model off).
         knot_sigma: strand coordinate of the thread's stopper knot, m (``inf`` without one; module
             docstring, detection step 6).
     """
@@ -57,6 +68,11 @@ class CouplingModel:
     tri_rigid: np.ndarray
     surface: TriangleSurface
     tet_bvh: BVH
+    tissue_rest_q: np.ndarray
+    surface_vertex: np.ndarray
+    surface_vertex_area: np.ndarray
+    tip_patch_radius: float
+    tri_tip_compliance: np.ndarray
     knot_sigma: float = math.inf
 
     @property
@@ -115,7 +131,28 @@ class CouplingModel:
         rigid = np.all(tissue.particle_inv_mass[tri] == 0.0, axis=1)
         surface = build_triangle_surface(tri, rest)
         tet_bvh = build_bvh(tets, rest)
-        for array in (sigma, seg_length, friction, local, rigid):
+        surface_vertex, inverse = np.unique(tri, return_inverse=True)
+        tri_area = 0.5 * np.linalg.norm(np.cross(rest[tri[:, 1]] - rest[tri[:, 0]], rest[tri[:, 2]] - rest[tri[:, 0]]), axis=1)
+        vertex_area = np.bincount(inverse.reshape(-1), weights=np.repeat(tri_area / 3.0, 3), minlength=surface_vertex.size)
+        patch_radius = 0.0
+        compliance = np.zeros(tri.shape[0])
+        if params.tip_contact_radius > 0.0:
+            edges = np.concatenate([rest[tri[:, 1]] - rest[tri[:, 0]], rest[tri[:, 2]] - rest[tri[:, 1]],
+                                    rest[tri[:, 0]] - rest[tri[:, 2]]])  # fmt: skip
+            patch_radius = max(params.tip_contact_radius, TIP_PATCH_CELLS * float(np.linalg.norm(edges, axis=1).mean()))
+            mu = tissue.tet_mu[tissue.tri_tet]
+            lame = tissue.tet_lambda[tissue.tri_tet] - mu
+            nu = lame / (2.0 * (lame + mu))
+            compliance = tip_series_compliance(params.tip_contact_radius, patch_radius, 2.0 * mu * (1.0 + nu), nu)
+            deepest = float(compliance.max()) * params.puncture_force
+            if deepest > params.tip_length:
+                raise ValueError(
+                    f"CouplingParams.tip_length ({params.tip_length} m) must cover the tip's local dent at the "
+                    f"puncture force, {deepest:.4g} m (tip_contact_radius {params.tip_contact_radius} m, "
+                    f"puncture_force {params.puncture_force} N): raise tip_length or tip_contact_radius"
+                )
+        surface_vertex = surface_vertex.astype(np.int32)
+        for array in (sigma, seg_length, friction, local, rigid, surface_vertex, vertex_area, compliance):
             array.flags.writeable = False
         for bvh in (surface.bvh, tet_bvh):
             bvh.node_lo.flags.writeable = False
@@ -131,8 +168,25 @@ class CouplingModel:
             tri_rigid=rigid,
             surface=surface,
             tet_bvh=tet_bvh,
+            tissue_rest_q=rest,
+            surface_vertex=surface_vertex,
+            surface_vertex_area=vertex_area,
+            tip_patch_radius=patch_radius,
+            tri_tip_compliance=compliance,
             knot_sigma=knot_sigma,
         )
+
+
+def tip_series_compliance(contact_radius, patch_radius, youngs_modulus, poisson_ratio):
+    """The tip's local compliance the mesh cannot resolve, m/N: a rigid flat punch of radius ``a =
+    contact_radius`` (m) on an elastic half-space sinks by ``F (1 - nu^2) / (2 a E)`` (Boussinesq; Johnson,
+    *Contact Mechanics*, 1985, sec. 3.8), while the same force spread as a uniform pressure over a disc of radius
+    ``b = patch_radius`` (m), which the mesh does resolve, moves that disc by ``16 F (1 - nu^2) / (3 pi^2 E b)``
+    on average (Johnson, sec. 3.2). The row that spreads the tip's force over the patch adds the difference in
+    series, so tip + mesh = the punch: ``(1 - nu^2) / E * (1 / (2 a) - 16 / (3 pi^2 b))``, clipped at 0 (a
+    punch wider than the patch). ``youngs_modulus`` Pa and ``poisson_ratio`` may be arrays (one per triangle)."""
+    factor = (1.0 - np.asarray(poisson_ratio) ** 2) / np.asarray(youngs_modulus)
+    return np.maximum(factor * (0.5 / contact_radius - 16.0 / (3.0 * math.pi**2 * patch_radius)), 0.0)
 
 
 @dataclass
@@ -164,9 +218,19 @@ class CouplingState:
         tip_anchor_tri: surface triangle of the tip's anchor (the surface point the tip engages before puncture,
             :class:`CouplingParams` ``tip_friction``), -1 for none.
         tip_anchor_bary: ``(3,) float64`` barycentric coordinates of the anchor in that triangle.
+        tip_anchor_inside: the anchor is an *exit anchor*: the tip inside an open path pressing on the surface
+            from the inside (``exit_puncture_force``), not the entry anchor from the outside.
+        exit_pierced: the tip of the open path has passed the exit threshold and may leave the tissue.
+        tip_patch_count: surface vertices of the tip's contact patch (0: the anchor is one point of its
+            triangle); tip_patch_vertex: ``(C,) int32`` those vertices; tip_patch_weight: ``(C,) float64`` their
+            weights (sum 1); tip_patch_offset: ``(3,) float64`` m, the anchor point minus the patch's weighted
+            mean at anchoring (the row holds the tip against ``sum_i w_i x_i + offset``); tip_patch_compliance:
+            the row's series compliance, m/N (:func:`tip_series_compliance`).
         tip_force: force the tip region's contact rows exerted against the tip's direction of travel in the last
             substep, N (the puncture test, :func:`coupling_finish`).
         friction_force: total axial friction force on the needle in the last substep, N.
+        cut_force: the cutting force that resisted the tip's advance in the last substep, N
+            (``cutting_force`` while the tip cuts, 0 while it does not advance).
         max_force: largest single coupling-constraint force the tissue bore in the last substep, N (contacts with
             rigid faces excluded).
         punctures: number of punctures so far.
@@ -192,11 +256,19 @@ class CouplingState:
     pathnode_tet: np.ndarray
     pathnode_bary: np.ndarray
     tip_anchor_bary: np.ndarray
+    tip_patch_vertex: np.ndarray
+    tip_patch_weight: np.ndarray
+    tip_patch_offset: np.ndarray
     tip_anchor_tri: int = -1
+    tip_anchor_inside: bool = False
+    exit_pierced: bool = False
+    tip_patch_count: int = 0
+    tip_patch_compliance: float = 0.0
     path_count: int = 0
     pathnode_count: int = 0
     tip_force: float = 0.0
     friction_force: float = 0.0
+    cut_force: float = 0.0
     max_force: float = 0.0
     punctures: int = 0
     damaged: bool = False
@@ -229,6 +301,9 @@ class CouplingState:
             pathnode_tet=np.full(p, -1, np.int32),
             pathnode_bary=np.zeros((p, 4)),
             tip_anchor_bary=np.zeros(3),
+            tip_patch_vertex=np.zeros(TIP_PATCH_CAPACITY, np.int32),
+            tip_patch_weight=np.zeros(TIP_PATCH_CAPACITY),
+            tip_patch_offset=np.zeros(3),
         )
 
     def copy(self) -> CouplingState:
@@ -288,8 +363,14 @@ class CouplingWork:
             ``(access_node, access_weight, access_rest, access_tri, access_bary)``, contact_rows: ``(row_kind,
             row_tri, row_bary, row_contact_normal, row_floor)`` and needle_rows: ``(row_kind,
             row_tri, row_bary, row_contact_normal, row_floor, row_tissue, row_weight, row_tangent, row_lambda,
-            row_friction_lambda)``, built once: the kernels take these groups as one argument each (the same
-            arrays, not copies).
+            row_friction_lambda, tip_patch, cut_rows)``, built once: the kernels take these groups as one argument
+            each (the same arrays, not copies).
+        tip_patch: this substep's tip contact patch for the anchor row, ``(vertex (C,) int32, weight (C,),
+            count (1,) int64, offset (3,) m, compliance (1,) m/N)`` (count 0: the anchor is a point of its
+            triangle; :class:`CouplingState` ``tip_patch_*``).
+        cut_rows: the tip's cutting row, ``(tissue (4,) int32, weight (4,), direction (3,), cap (1,) N,
+            lambda (1,) kg m)``: the tissue point (the open path's last node), the tip's unit direction, the
+            most force it resists the tip's advance with (0: no row) and its multiplier.
     """
 
     def __init__(self, model: CouplingModel):
@@ -329,6 +410,12 @@ class CouplingWork:
             self.row_weight, self.row_tangent, self.row_lambda, self.row_friction_lambda,
         )  # fmt: skip
         self.suture_contact_w = np.zeros(model.suture_node_count)
+        self.tip_patch = (
+            np.zeros(TIP_PATCH_CAPACITY, np.int32), np.zeros(TIP_PATCH_CAPACITY), np.zeros(1, np.int64), np.zeros(3),
+            np.zeros(1),
+        )  # fmt: skip
+        self.cut_rows = (np.zeros(4, np.int32), np.zeros(4), np.zeros(3), np.zeros(1), np.zeros(1))
+        self.needle_rows = (*self.needle_rows, self.tip_patch, self.cut_rows)
 
 
 def _writable_boxes(bvh: BVH) -> BVH:

@@ -13,7 +13,7 @@ from suture_gym.sim.coupling.constraints import (
     tissue_point,
     xpbd_delta_lambda,
 )
-from suture_gym.sim.coupling.params import ROW_ANCHOR, ROW_NONE, ROW_PATH, TINY_LENGTH
+from suture_gym.sim.coupling.params import ROW_ANCHOR, ROW_EXIT, ROW_NONE, ROW_PATH, TINY_LENGTH
 from suture_gym.sim.rigid import (
     body_point,
     point_inv_mass_matrix,
@@ -69,6 +69,28 @@ def _project_contact(
 
 
 @njit(cache=True)
+def _anchor_point(tri, bary, tri_vertices, tissue_q, tissue_inv_mass, patch):
+    """The tissue point ``p`` (3,) m an anchor row holds the tip against and its generalised inverse mass
+    ``sum_k c_k^2 w_k`` (1/kg): the patch's ``sum_i c_i x_i + offset`` (:class:`CouplingWork` ``tip_patch``)
+    when it has vertices, else the point ``sum_k b_k x_k`` of triangle ``tri``."""
+    vertex, weight, count, offset, _ = patch
+    if count[0] == 0:
+        i0 = tri_vertices[tri, 0]
+        i1 = tri_vertices[tri, 1]
+        i2 = tri_vertices[tri, 2]
+        w_tissue = (
+            bary[0] ** 2 * tissue_inv_mass[i0] + bary[1] ** 2 * tissue_inv_mass[i1] + bary[2] ** 2 * tissue_inv_mass[i2]
+        )
+        return bary[0] * tissue_q[i0] + bary[1] * tissue_q[i1] + bary[2] * tissue_q[i2], w_tissue
+    p = offset.copy()
+    w_tissue = 0.0
+    for a in range(count[0]):
+        p += weight[a] * tissue_q[vertex[a]]
+        w_tissue += weight[a] ** 2 * tissue_inv_mass[vertex[a]]
+    return p, w_tissue
+
+
+@njit(cache=True)
 def _project_anchor(
     needle_inv_mass,
     needle_inv_inertia_body,
@@ -83,32 +105,38 @@ def _project_anchor(
     friction,
     lam,
     friction_out,
+    patch,
+    dt,
     needle_pos,
     needle_quat,
     tissue_q,
 ):
-    """The tip's anchor row: the tip held ``eps`` above its anchor ``p = sum_k b_k x_k`` (eq. 2 with the
-    contact point fixed in the material, ``C_n = (q - p) . n - eps >= floor``) and over it across the normal,
-    within a Coulomb cone; returns the updated normal multiplier (``lam`` in, kept ``>= 0``).
+    """The tip's anchor row: the tip held ``eps`` above its anchor ``p`` (eq. 2 with the contact point fixed in
+    the material, ``C_n = (q - p) . n - eps >= floor``) and over it across the normal, within a Coulomb cone;
+    returns the updated normal multiplier (``lam`` in, kept ``>= 0``). ``p`` is the point ``sum_k b_k x_k`` of
+    the anchor triangle, or, with the tip-contact model, the tip's contact patch ``sum_i c_i x_i + offset``
+    (``patch``, :class:`CouplingWork` ``tip_patch``; :func:`_anchor_point`). The exit anchor (ROW_EXIT) is the
+    same row with the normal turned inward: the tip held ``eps`` inside.
 
     The tip is a point of a rigid body whose generalised inverse mass is a full 3 x 3 matrix
     (``K = I/m - [r]x I^-1 [r]x``, :func:`~suture_gym.sim.needle.point_inv_mass_matrix`, plus the anchor's
     ``sum_k b_k^2 w_k``): an impulse across the normal also moves the tip along it and sideways, so the
     normal and friction rows are solved together as one point constraint: the impulse ``P = K^-1 (t - q)``
-    that puts the tip on its target ``t = p + (eps + floor) n``. If the accumulated tangential impulse
-    (``friction_out[:3]``, kg m) would leave the cone ``|P_t| <= friction * P_n``, it is scaled back onto it
-    and the normal part re-solved with it fixed, so the tip slides; ``friction_out[3]`` gets the tangential
-    offset left, m (0 while the tip sticks). The needle takes ``P`` at the tip, vertex ``k`` moves by
-    ``-w_k b_k P``. Updates the needle pose, ``tissue_q`` and ``friction_out`` (4,).
+    that puts the tip on its target ``t = p + (eps + floor) n``. With the patch's series compliance ``alpha``
+    (m/N, isotropic: the tangential compliance of a punch is taken equal to its normal one) the row is an XPBD
+    spring in series: ``P = (K + alpha/dt^2 I)^-1 (t - q - alpha/dt^2 Lambda)`` with ``Lambda`` the impulse
+    accumulated this substep (kg m), and ``floor`` is not applied (the spring lets the tip sink by
+    ``alpha F``, which is not an old penetration). If the accumulated tangential impulse (``friction_out[:3]``,
+    kg m) would leave the cone ``|P_t| <= friction * P_n``, it is scaled back onto it and the normal part
+    re-solved with it fixed, so the tip slides; ``friction_out[3]`` gets the tangential offset left, m (0 while
+    the tip sticks). The needle takes ``P`` at the tip, tissue vertex ``k`` moves by ``-w_k c_k P``. Updates the
+    needle pose, ``tissue_q`` and ``friction_out`` (4,).
     """
-    i0 = tri_vertices[tri, 0]
-    i1 = tri_vertices[tri, 1]
-    i2 = tri_vertices[tri, 2]
-    w_tissue = (
-        bary[0] ** 2 * tissue_inv_mass[i0] + bary[1] ** 2 * tissue_inv_mass[i1] + bary[2] ** 2 * tissue_inv_mass[i2]
-    )
+    p, w_tissue = _anchor_point(tri, bary, tri_vertices, tissue_q, tissue_inv_mass, patch)
+    alpha = patch[4][0] / (dt * dt)
+    if alpha > 0.0:
+        floor = 0.0
     q = body_point(needle_pos, needle_quat, node_body)
-    p = bary[0] * tissue_q[i0] + bary[1] * tissue_q[i1] + bary[2] * tissue_q[i2]
     d = p + (eps + floor) * normal - q
     friction_out[3] = 0.0
     if d @ normal <= 0.0 and lam == 0.0:  # clear of the surface: no load, the tip slides freely
@@ -120,6 +148,10 @@ def _project_anchor(
     k = point_inv_mass_matrix(needle_inv_mass, inv_inertia, r)
     for a in range(3):
         k[a, a] += w_tissue
+    if alpha > 0.0:
+        d = d - alpha * (lam * normal + friction_out[:3])
+        for a in range(3):
+            k[a, a] += alpha
     impulse = np.linalg.solve(k, d)
     p_n = impulse @ normal
     if lam + p_n < 0.0:  # the tissue would have to pull the tip: the contact lets go
@@ -142,9 +174,15 @@ def _project_anchor(
             friction_out[3] = max(math.sqrt(offset @ offset), TINY_LENGTH)
     friction_out[:3] += impulse - (impulse @ normal) * normal
     rigid_apply(needle_pos, needle_quat, needle_inv_mass, inv_inertia, impulse, np.cross(r, impulse), 1.0)
-    for a in range(3):
-        vi = tri_vertices[tri, a]
-        tissue_q[vi] -= tissue_inv_mass[vi] * bary[a] * impulse
+    vertex, weight, count = patch[0], patch[1], patch[2][0]
+    if count == 0:
+        for a in range(3):
+            vi = tri_vertices[tri, a]
+            tissue_q[vi] -= tissue_inv_mass[vi] * bary[a] * impulse
+    else:
+        for a in range(count):
+            vi = vertex[a]
+            tissue_q[vi] -= tissue_inv_mass[vi] * weight[a] * impulse
     return lam + (impulse @ normal)
 
 
@@ -152,7 +190,7 @@ def _project_anchor(
 def project_needle_rows(needle, tissue, coefficients, rows, tip_friction_out, needle_pos, needle_quat, tissue_q):
     """One Gauss-Seidel pass over the rows of the needle nodes (strand nodes ``0 .. Nn-1``).
 
-    Contact rows (ROW_TRIANGLE, ROW_WALL, ROW_ANCHOR: :func:`node_surface_constraint` in the row's frame,
+    Contact rows (ROW_TRIANGLE, ROW_WALL, ROW_ANCHOR, ROW_EXIT: :func:`node_surface_constraint` in the row's frame,
     ``C >= row_floor``, multiplier kept ``>= 0``) and node-path rows (eq. 1) are rigid (zero compliance) and
     two-way (:func:`_project_contact`, :func:`_project_path_row`): ``dlambda = -C / (w_needle + sum_k b_k^2 w_k)``
     with ``w_needle`` the needle's generalised inverse mass at the node along the gradient; the needle takes the
@@ -160,7 +198,8 @@ def project_needle_rows(needle, tissue, coefficients, rows, tip_friction_out, ne
     adds Coulomb friction with coefficient ``tip_friction`` (:func:`_project_anchor`; its tangential impulse
     and slip in ``tip_friction_out`` (4,)). A node-path multiplier is kept within ``tear_force dt^2`` in
     magnitude (the tissue gives way beyond it). After each path row, kinetic axial friction
-    (:func:`_project_axial_friction`). Updates the needle pose, ``tissue_q`` and the multipliers.
+    (:func:`_project_axial_friction`). Last the tip's cutting row, if any (:func:`project_cutting`). Updates the
+    needle pose, ``tissue_q`` and the multipliers.
 
     Args:
         needle: ``(Nn, inv_mass 1/kg, inv_inertia_body (3, 3), node_body (Nn, 3) m, pos_prev (3,) m,
@@ -168,23 +207,24 @@ def project_needle_rows(needle, tissue, coefficients, rows, tip_friction_out, ne
         tissue: ``(inv_mass (N,) 1/kg, q_prev (N, 3) m, tri_vertices (F, 3))``.
         coefficients: ``(strand_friction (M,) N, eps m, dt s, tip_friction, tear_force N)``.
         rows: ``CouplingWork.needle_rows``: ``(row_kind, row_tri, row_bary, row_contact_normal, row_floor,
-            row_tissue, row_weight, row_tangent, row_lambda, row_friction_lambda)`` (:class:`CouplingWork`).
+            row_tissue, row_weight, row_tangent, row_lambda, row_friction_lambda, tip_patch, cut_rows)``
+            (:class:`CouplingWork`).
         tip_friction_out: ``(4,)``. needle_pos: ``(3,)`` m, needle_quat: ``(4,)``, tissue_q: ``(N, 3)`` m.
     """
     needle_node_count, needle_inv_mass, needle_inv_inertia_body, needle_node_body = needle[:4]
     tissue_inv_mass, _, tri_vertices = tissue
-    _, eps, _, tip_friction, _ = coefficients
+    _, eps, dt, tip_friction, _ = coefficients
     row_kind, row_tri, row_bary, row_contact_normal, row_floor = rows[:5]
     row_lambda = rows[8]
     for i in range(needle_node_count):
         kind = row_kind[i]
         if kind == ROW_NONE:
             continue
-        if kind == ROW_ANCHOR:
+        if kind == ROW_ANCHOR or kind == ROW_EXIT:
             row_lambda[i] = _project_anchor(
                 needle_inv_mass, needle_inv_inertia_body, needle_node_body[i], row_tri[i], row_bary[i],
                 row_contact_normal[i], tri_vertices, tissue_inv_mass, eps, row_floor[i], tip_friction,
-                row_lambda[i], tip_friction_out, needle_pos, needle_quat, tissue_q,
+                row_lambda[i], tip_friction_out, rows[10], dt, needle_pos, needle_quat, tissue_q,
             )  # fmt: skip
         elif kind != ROW_PATH:
             row_lambda[i] = _project_contact(
@@ -195,6 +235,47 @@ def project_needle_rows(needle, tissue, coefficients, rows, tip_friction_out, ne
         else:
             _project_path_row(i, needle, tissue_inv_mass, coefficients, rows, needle_pos, needle_quat, tissue_q)
             _project_axial_friction(i, needle, tissue, coefficients, rows, needle_pos, needle_quat, tissue_q)
+    if rows[11][3][0] > 0.0:
+        project_cutting(needle, tissue, dt, rows[11], needle_pos, needle_quat, tissue_q)
+
+
+@njit(cache=True)
+def project_cutting(needle, tissue, dt, cut, needle_pos, needle_quat, tissue_q):
+    """The tip's cutting row (Okamura et al. 2004: a constant cutting force while the tip advances): the tip's
+    advance along its direction ``t`` relative to the tissue point ``p`` since the start of the substep,
+    ``s = ((q - q0) - (p - p0)) . t``, is removed by a multiplier kept in ``[-cap dt^2, 0]``: the tip advances
+    only under more than ``cap`` N along ``t`` and is then resisted by exactly ``cap``; a tip that stands or
+    retreats feels nothing. Two-way: the tissue point takes the reaction. Like the axial friction it is solved
+    against the needle's generalised inverse mass along ``t`` at the tip plus the tissue point's.
+
+    Args:
+        needle: as :func:`project_needle_rows`. tissue: ``(inv_mass (N,) 1/kg, q_prev (N, 3) m, tri_vertices)``.
+        dt: s. cut: ``CouplingWork.cut_rows`` ``(tissue (4,), weight (4,), direction (3,), cap (1,) N,
+            lambda (1,) kg m)``; ``lambda`` accumulates over the sweeps of the substep.
+        needle_pos, needle_quat, tissue_q: updated in place.
+    """
+    _, needle_inv_mass, needle_inv_inertia_body, needle_node_body, needle_pos_prev, needle_quat_prev = needle
+    tissue_inv_mass, tissue_q_prev, _ = tissue
+    idx, wt, t, cap_force, lam = cut
+    cap = cap_force[0] * dt * dt
+    inv_inertia = world_inv_inertia(needle_quat, needle_inv_inertia_body)
+    q = body_point(needle_pos, needle_quat, needle_node_body[0])
+    r = q - needle_pos
+    q0 = body_point(needle_pos_prev, needle_quat_prev, needle_node_body[0])
+    p = tissue_point(tissue_q, idx, wt)
+    p0 = tissue_point(tissue_q_prev, idx, wt)
+    advance = ((q - q0) - (p - p0)) @ t
+    w_tissue = 0.0
+    for a in range(idx.shape[0]):
+        w_tissue += wt[a] * wt[a] * tissue_inv_mass[idx[a]]
+    w = rigid_generalized_inv_mass(needle_inv_mass, inv_inertia, t, np.cross(r, t)) + w_tissue
+    dlam = xpbd_delta_lambda(advance, w, 0.0, 0.0)
+    total = min(max(lam[0] + dlam, -cap), 0.0)
+    dlam = total - lam[0]
+    lam[0] = total
+    rigid_apply(needle_pos, needle_quat, needle_inv_mass, inv_inertia, t, np.cross(r, t), dlam)
+    for a in range(idx.shape[0]):
+        tissue_q[idx[a]] -= tissue_inv_mass[idx[a]] * wt[a] * dlam * t
 
 
 @njit(cache=True)

@@ -19,9 +19,17 @@ ROW_TRIANGLE = 1
 ROW_PATH = 2
 ROW_ANCHOR = 3
 ROW_WALL = 4
+ROW_EXIT = 5
 
 #: Tissue vertices a node-path row touches: the two tets of the path nodes either side of the projection.
 PATH_ROW_VERTICES = 8
+
+#: Radius of the tip's contact patch in mean boundary edge lengths, at least (``tip_contact_radius``): wide
+#: enough that the mesh resolves the patch's load (a disc of one edge length covers one to four vertices).
+TIP_PATCH_CELLS = 1.5
+
+#: Most surface vertices in the tip's contact patch (the nearest are kept).
+TIP_PATCH_CAPACITY = 64
 
 #: Below this length (m) a direction is undefined and the constraint is skipped (degenerate geometry).
 TINY_LENGTH = 1.0e-12
@@ -54,7 +62,22 @@ class CouplingParams:
             moved out by at most ``depenetration_speed * dt`` per substep instead of all at once (a contact
             the prediction violates from outside is still resolved fully).
         needle_axial_friction: kinetic friction force per metre of needle inside the tissue, N/m, resisting
-            the needle's motion along its path relative to the tissue (0 disables it).
+            the needle's motion along its path relative to the tissue (0 disables it). Coulomb-like: a constant
+            force per length while it slides (no dependence on speed or on the normal load, which a constant
+            radial pressure of the tissue on the wire makes constant too), any smaller force while it sticks.
+        exit_puncture_force: N; while the tip is inside and heads out through the surface, the surface holds
+            it (the *exit anchor*, a contact from the inside with ``tip_friction``) until the force the tip
+            exerts on it reaches this threshold, the second peak of an insertion (Frick et al. 2001 measure it
+            at about half the entry's). 0 (the default): the tip leaves with no threshold.
+        cutting_force: N; while a puncture is open, the force that resists the tip's advance through the tissue
+            along its direction (Okamura et al. 2004: constant for a given tip and tissue); zero while the tip
+            does not advance. 0 (the default) disables it.
+        tip_contact_radius: m; before puncture the tip loads the tissue as a flat punch of this radius: its
+            contact force is spread over the surface patch within ``max(tip_contact_radius,
+            TIP_PATCH_CELLS x`` the mean surface edge length ``)`` of its anchor, in series with the local
+            half-space compliance the mesh cannot resolve (:func:`tip_series_compliance`), so the force-depth
+            slope before puncture is set by the tip and the tissue, not by the cell size. 0 (the default): the
+            tip is one point of its anchor triangle (its stiffness then scales with the cell size).
         contact_margin: m; node-triangle rows are made for strand nodes closer than ``eps + contact_margin`` to
             the surface (speculative contacts: a one-sided row acts only once violated, and a node that a
             projection left exactly at ``eps`` keeps its row in the next substep instead of flickering).
@@ -75,6 +98,9 @@ class CouplingParams:
     tip_friction: float = 1.0
     depenetration_speed: float = 0.1
     needle_axial_friction: float = 10.0
+    exit_puncture_force: float = 0.0
+    cutting_force: float = 0.0
+    tip_contact_radius: float = 0.0
     contact_margin: float = 1.0e-3
     track_window: float = 2.0e-3
     broad_phase_margin: float = 5.0e-3
@@ -98,7 +124,13 @@ class CouplingParams:
             if not (is_real(value) and math.isfinite(value) and value > 0.0):
                 raise ValueError(f"CouplingParams.{name} must be a finite number > 0, got {value!r}")
             object.__setattr__(self, name, float(value))
-        for name in ("needle_axial_friction", "tip_friction"):
+        for name in (
+            "needle_axial_friction",
+            "tip_friction",
+            "exit_puncture_force",
+            "cutting_force",
+            "tip_contact_radius",
+        ):
             value = getattr(self, name)
             if not (is_real(value) and math.isfinite(value) and value >= 0.0):
                 raise ValueError(f"CouplingParams.{name} must be a finite number >= 0, got {value!r}")

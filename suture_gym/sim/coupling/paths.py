@@ -14,7 +14,7 @@ from suture_gym.sim.collision import (
 )
 from suture_gym.sim.coupling.constraints import surface_normal
 from suture_gym.sim.coupling.model import CouplingModel, CouplingState, CouplingWork
-from suture_gym.sim.coupling.params import TINY_LENGTH
+from suture_gym.sim.coupling.params import TIP_PATCH_CAPACITY, TINY_LENGTH
 
 
 @njit(cache=True)
@@ -175,15 +175,23 @@ def release_path(state: CouplingState, k: int) -> None:
     state.path_count -= 1
 
 
-def update_tip_anchor(model: CouplingModel, state: CouplingState, tissue_q, tip) -> None:
-    """Keep, release or set the tip's anchor (module docstring, detection step 3) for the tip at ``tip`` (3,)
-    m: while no path is open, the tip engages the surface point it first comes within the contact band of and
+def update_tip_anchor(model: CouplingModel, state: CouplingState, tissue_q, strand_q) -> None:
+    """Keep, release or set the tip's anchor (module docstring, detection step 3) for the strand at ``strand_q``
+    (M, 3) m (the tip is node 0): while no path is open, the tip engages the surface point it first comes within the contact band of and
     keeps it until it moves off the surface (its gap along the anchor normal exceeds the band) or slides
-    (:func:`coupling_finish`)."""
+    (:func:`coupling_finish`); with the tip-contact model on (``tip_contact_radius > 0``) the anchor gets its
+    contact patch (:func:`tip_patch`).
+
+    With an exit threshold (``exit_puncture_force > 0``), the tip inside an open path that heads out through a
+    deformable face (its direction, from the needle node behind it, points out of the surface) and comes within
+    the band of it from the inside, farther than ``path_spacing_min`` from its own entry, gets an *exit anchor*
+    there (``tip_anchor_inside``), kept until it moves back into the tissue by more than the band, slides, or
+    pierces the exit (:func:`tip_events`)."""
     params = model.params
     band = params.resistance_eps + params.contact_margin
     surface = model.surface
-    if state.punctured:
+    tip = strand_q[0]
+    if state.punctured and not state.tip_anchor_inside:
         state.tip_anchor_tri = -1
     if state.tip_anchor_tri >= 0:
         n = surface_normal(
@@ -191,18 +199,91 @@ def update_tip_anchor(model: CouplingModel, state: CouplingState, tissue_q, tip)
             surface.vertex_tri_index, tissue_q,
         )  # fmt: skip
         p = access_point(model, tissue_q, state.tip_anchor_tri, state.tip_anchor_bary)
-        if not n.any() or float((tip - p) @ n) > band:
+        gap = float((tip - p) @ n)
+        if not n.any() or (-gap if state.tip_anchor_inside else gap) > band:
             state.tip_anchor_tri = -1
-    if state.tip_anchor_tri < 0 and not state.punctured and state.strand_tri[0] >= 0 and state.strand_sdist[0] < band:
-        state.tip_anchor_tri = int(state.strand_tri[0])
-        state.tip_anchor_bary[:] = state.strand_bary[0]
+    if state.tip_anchor_tri < 0:
+        state.tip_anchor_inside = False
+        state.tip_patch_count = 0
+        state.tip_patch_compliance = 0.0
+    if state.tip_anchor_tri >= 0 or state.strand_tri[0] < 0:
+        return
+    if not state.punctured:
+        if state.strand_sdist[0] < band:
+            state.tip_anchor_tri = int(state.strand_tri[0])
+            state.tip_anchor_bary[:] = state.strand_bary[0]
+            if params.tip_contact_radius > 0.0:
+                tip_patch(model, state, tissue_q)
+        return
+    k = state.path_count - 1
+    tri = int(state.strand_tri[0])
+    if (
+        params.exit_puncture_force > 0.0
+        and state.path_entered[k]
+        and not state.exit_pierced
+        and not model.tri_rigid[tri]
+        and state.strand_sdist[0] > -band
+    ):
+        bary = state.strand_bary[0]
+        n = surface_normal(
+            tri, bary, surface.tri_vertices, surface.vertex_tri_start, surface.vertex_tri_index, tissue_q
+        )  # fmt: skip
+        entry = access_point(model, tissue_q, state.path_entry_tri[k], state.path_entry_bary[k])
+        point = access_point(model, tissue_q, tri, bary)
+        heading_out = float((tip - strand_q[1]) @ n) > 0.0
+        if heading_out and np.linalg.norm(point - entry) > params.path_spacing_min:
+            state.tip_anchor_tri = tri
+            state.tip_anchor_bary[:] = bary
+            state.tip_anchor_inside = True
+
+
+def tip_patch(model: CouplingModel, state: CouplingState, tissue_q: np.ndarray) -> None:
+    """The tip's contact patch for its new anchor (``state.tip_anchor_tri``, ``tip_anchor_bary``): the surface
+    vertices within ``model.tip_patch_radius`` of the anchor in the rest shape (the nearest
+    :data:`TIP_PATCH_CAPACITY`), weighted by their lumped areas (a uniform pressure; weights sum to 1), or the
+    anchor triangle's vertices with its barycentrics where no vertex is that near; the offset that puts the
+    patch's weighted mean on the anchor at ``tissue_q`` (N, 3) m; and the anchor triangle's series compliance.
+    Writes the ``tip_patch_*`` fields of ``state``."""
+    tri = state.tip_anchor_tri
+    corners = model.surface.tri_vertices[tri]
+    rest = model.tissue_rest_q
+    anchor_rest = state.tip_anchor_bary @ rest[corners]
+    d = np.linalg.norm(rest[model.surface_vertex] - anchor_rest, axis=1)
+    inside = np.flatnonzero(d <= model.tip_patch_radius)
+    if inside.size > TIP_PATCH_CAPACITY:
+        inside = inside[np.argsort(d[inside], kind="stable")[:TIP_PATCH_CAPACITY]]
+    if inside.size:
+        vertices = model.surface_vertex[inside]
+        weights = model.surface_vertex_area[inside] / model.surface_vertex_area[inside].sum()
+    else:
+        vertices, weights = corners, state.tip_anchor_bary.copy()
+    count = vertices.size
+    state.tip_patch_count = count
+    state.tip_patch_vertex[:count] = vertices
+    state.tip_patch_weight[:count] = weights
+    state.tip_patch_weight[count:] = 0.0
+    state.tip_patch_offset[:] = state.tip_anchor_bary @ tissue_q[corners] - weights @ tissue_q[vertices]
+    state.tip_patch_compliance = float(model.tri_tip_compliance[tri])
 
 
 def tip_events(
     model: CouplingModel, state: CouplingState, work: CouplingWork, tissue, tissue_q: np.ndarray, tip: np.ndarray
 ) -> None:
-    """Puncture, path growth and exit of the tip at ``tip`` (3,) m (module docstring, steps 3-5), for the tissue
-    (:class:`~suture_gym.sim.model.TissueModel` ``tissue``) at ``tissue_q`` (N, 3) m; updates ``state``'s paths."""
+    """Puncture, path growth, exit and backing out of the tip at ``tip`` (3,) m (module docstring, steps 3-5),
+    for the tissue (:class:`~suture_gym.sim.model.TissueModel` ``tissue``) at ``tissue_q`` (N, 3) m; updates
+    ``state``'s paths.
+
+    Exit with a threshold (``exit_puncture_force > 0``): once the previous substep's tip force on the exit anchor
+    (:func:`update_tip_anchor`) reaches it, the exit is pierced and the anchor let go; until then a tip found
+    outside is not let out but anchored where it crossed, so the anchor pulls it back.
+
+    Backing out: a tip that is outside while its entry lies on its own segment (``sigma_entry`` below the first
+    needle segment's length) went back out through its entry. With an exit threshold the open path is then
+    released at once (no exit is recorded), and the next push must puncture anew. Without one (today's default,
+    kept bit for bit) the back-out is taken as an exit at the entry: the path closes with its exit next to its
+    entry and is released by :func:`release_finished_paths` once no strand is left between the two (the next
+    substeps while the tip moves away); a tip that stops right outside keeps that closed path, and its
+    access rows hold the tip's segment at the surface, until it moves on."""
     params = model.params
     n = state.path_count
     open_k = n - 1 if n > 0 and state.path_open[n - 1] else -1
@@ -210,6 +291,10 @@ def tip_events(
     if open_k < 0:
         _puncture(model, state, tissue)
         return
+    if state.tip_anchor_inside and state.tip_anchor_tri >= 0 and state.tip_force >= params.exit_puncture_force:
+        state.exit_pierced = True
+        state.tip_anchor_tri = -1
+        state.tip_anchor_inside = False
     if tip_sdist < 0.0 and not state.path_entered[open_k]:
         # the tip is through: the entry is where the strand crosses the surface (the puncture recorded the
         # tip's closest point from just outside)
@@ -221,11 +306,20 @@ def tip_events(
         state.pathnode_tet[slot], state.pathnode_bary[slot] = surface_point_tet(model, tissue, tri, bary)
         return
     if state.path_entered[open_k] and tip_sdist > 0.0:
+        if params.exit_puncture_force > 0.0 and state.path_sigma_entry[open_k] < model.strand_sigma[1]:
+            release_path(state, open_k)  # backed out through the entry
+            return
         tri, bary = tip_crossing(model, state, work, tissue_q)
         if tri < 0:  # the needle's front left the tissue without crossing its surface: the bite is lost
             release_path(state, open_k)
             return
         if model.tri_rigid[tri]:
+            return
+        if params.exit_puncture_force > 0.0 and not state.exit_pierced:
+            if state.tip_anchor_tri < 0:
+                state.tip_anchor_tri = tri
+                state.tip_anchor_bary[:] = bary
+                state.tip_anchor_inside = True
             return
         state.path_open[open_k] = False
         state.path_exit_tri[open_k] = tri
@@ -306,6 +400,9 @@ def _puncture(model: CouplingModel, state: CouplingState, tissue) -> None:
             state.overflow = True
             return
         state.tip_anchor_tri = -1
+        state.tip_patch_count = 0
+        state.tip_patch_compliance = 0.0
+        state.exit_pierced = False
         state.path_first[n] = state.pathnode_count
         state.path_len[n] = 0
         state.path_open[n] = True
