@@ -36,6 +36,7 @@ from suture_gym.sim.coupling import (
     track_sigma,
     xpbd_delta_lambda,
 )
+from suture_gym.sim.coupling.compliance import diagonal
 from suture_gym.sim.mesh import box_tet_grid
 from suture_gym.sim.model import TissueMaterial, TissueModel
 from suture_gym.sim.needle import NeedleModel, NeedleState
@@ -647,7 +648,7 @@ def _anchor_projection(friction, offset, penetration=1e-4, eps=3e-4):
     lam, lam_t, slip = np.zeros(nn), np.zeros(nn), np.zeros(4)
     project_needle_rows(
         (nn, needle.body_inv_mass, needle.body_inv_inertia, needle.node_pos_body, pos.copy(), quat.copy()),
-        (np.zeros(3), tissue_q.copy(), np.array([[0, 1, 2]], np.int32)),
+        (diagonal(np.zeros(3)), tissue_q.copy(), np.array([[0, 1, 2]], np.int32)),
         (np.zeros(nn), eps, 1e-3, friction, 4.0),
         (kind, np.zeros(nn, np.int32), bary, normals, np.zeros(nn), np.zeros((nn, 8), np.int32), np.zeros((nn, 8)),
          np.zeros((nn, 3)), lam, lam_t, no_patch(), no_cut()),
@@ -690,7 +691,7 @@ def test_a_path_row_transmits_at_most_the_tear_force():
     lam = np.zeros(nn)
     project_needle_rows(
         (nn, needle.body_inv_mass, needle.body_inv_inertia, needle.node_pos_body, pos.copy(), quat.copy()),
-        (np.zeros(4), tissue_q.copy(), np.zeros((1, 3), np.int32)),
+        (diagonal(np.zeros(4)), tissue_q.copy(), np.zeros((1, 3), np.int32)),
         (np.zeros(nn), 3e-4, dt, 0.0, tear),
         (kind, np.zeros(nn, np.int32), np.zeros((nn, 3)), np.zeros((nn, 3)), np.zeros(nn), idx, weight, tangent, lam,
          np.zeros(nn), no_patch(), no_cut()),

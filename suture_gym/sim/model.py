@@ -20,6 +20,7 @@ import numpy as np
 
 from suture_gym.sim.coloring import color_constraints
 from suture_gym.sim.coupling import CouplingModel, CouplingState, CouplingWork
+from suture_gym.sim.coupling.compliance import diagonal
 from suture_gym.sim.mesh import TetMesh, lumped_masses, rest_shape, surface_triangles
 from suture_gym.sim.needle import NeedleModel, NeedleState
 from suture_gym.sim.rod import RodModel, RodState, RodWork, StaticObstacles
@@ -458,6 +459,10 @@ class Work:
         coupling_work: :class:`~suture_gym.sim.coupling.CouplingWork` (rows, refitted BVHs), or None.
         rod_solves: direct solves of the suture in the last substep's last sweep (iterations whose residual
             was above the solver's ``rod_tolerance``), a convergence reading.
+        compliance: the tissue's side of the coupling rows this substep
+            (:mod:`~suture_gym.sim.coupling.compliance`): the particles' inverse masses (XPBD) or the implicit
+            integrator's compliance among the rows' vertices (set by the solver each substep); None without
+            tissue.
     """
 
     def __init__(self, model: Model):
@@ -465,6 +470,7 @@ class Work:
         self.rod_work = None if model.suture is None else RodWork(model.suture)
         self.coupling_work = None if model.coupling is None else CouplingWork(model.coupling)
         self.rod_solves = 0
+        self.compliance = None if model.tissue is None else diagonal(model.tissue.particle_inv_mass)
         self._tissue_integrator: ImplicitTissue | None = None
 
     def tissue_integrator(self, kind: str, dt: float) -> ImplicitTissue:

@@ -97,6 +97,7 @@ from suture_gym.sim.coupling import (
     strand_positions_kernel,
     suture_contact_rows,
 )
+from suture_gym.sim.coupling.compliance import row_vertices
 from suture_gym.sim.model import Control, Model, State, Work
 from suture_gym.sim.needle import needle_constraint_wrench, needle_predict, needle_update_velocities
 from suture_gym.sim.quat import quat_to_matrix
@@ -275,9 +276,19 @@ class Solver:
             state.diverged = True
             return
         self._detect(model, state, dt)
-        clock.lap("detect")
         if self._implicit(model):
-            state.work.tissue_integrator(self.tissue_integrator, dt).begin(state.tissue.particle_q, model.gravity)
+            integrator = state.work.tissue_integrator(self.tissue_integrator, dt)
+            integrator.begin(state.tissue.particle_q, model.gravity)
+            if model.coupling is not None:
+                state.work.compliance = integrator.begin_rows(self._row_vertices(model, state))
+        if model.coupling is not None and model.suture is not None:
+            work = state.work.coupling_work
+            embedded_inv_mass(
+                model.coupling.needle_node_count, work.node_rows, work.access_rows, work.access_count,
+                model.coupling.surface.tri_vertices, state.work.compliance, model.suture.node_inv_mass,
+                work.suture_inv_mass,
+            )  # fmt: skip
+        clock.lap("detect")
         for sweep in range(self.iterations):
             self._project(model, state, dt, first_sweep=sweep == 0, last_sweep=sweep == self.iterations - 1)
             if residuals is not None:
@@ -411,23 +422,22 @@ class Solver:
             (state.needle.body_pos_prev, state.needle.body_quat_prev, model.needle.node_pos_body), suture_q_prev,
             state.tissue.particle_q_prev,
         )  # fmt: skip
-        if model.suture is not None:
-            embedded_inv_mass(
-                coupling.needle_node_count, work.node_rows, work.access_rows, work.access_count,
-                coupling.surface.tri_vertices, self._row_inv_mass(model, state, dt), model.suture.node_inv_mass,
-                work.suture_inv_mass,
-            )  # fmt: skip
 
     def _implicit(self, model: Model) -> bool:
         """Whether the tissue is stepped by an implicit integrator."""
         return model.tissue is not None and self.tissue_integrator != "xpbd"
 
-    def _row_inv_mass(self, model: Model, state: State, dt: float) -> np.ndarray:
-        """Tissue inverse masses the coupling rows use: the particles' own with XPBD, the substep compliance
-        (:meth:`~suture_gym.sim.tissue_implicit.ImplicitTissue.row_inv_mass`) with an implicit integrator."""
-        if self._implicit(model):
-            return state.work.tissue_integrator(self.tissue_integrator, dt).row_inv_mass()
-        return model.tissue.particle_inv_mass
+    @staticmethod
+    def _row_vertices(model: Model, state: State) -> np.ndarray:
+        """``(N,) bool``: the tissue vertices this substep's coupling rows touch
+        (:func:`~suture_gym.sim.coupling.compliance.row_vertices`)."""
+        work = state.work.coupling_work
+        touched = np.zeros(model.tissue.particle_count, dtype=bool)
+        row_vertices(
+            work.row_kind, work.row_tri, work.row_tissue, work.row_weight, model.coupling.surface.tri_vertices,
+            work.access_tri, work.access_count, work.tip_patch, work.cut_rows, touched,
+        )  # fmt: skip
+        return touched
 
     def _project(
         self, model: Model, state: State, dt: float, first_sweep: bool = True, last_sweep: bool = True
@@ -495,14 +505,14 @@ class Solver:
         """The Gauss-Seidel coupling rows of needle and suture with the tissue."""
         coupling, work = model.coupling, state.work.coupling_work
         needle, needle_state = model.needle, state.needle
-        tissue_inv_mass = self._row_inv_mass(model, state, dt)
+        compliance = state.work.compliance
         tissue_q = state.tissue.particle_q
         tri_vertices = coupling.surface.tri_vertices
         eps = coupling.params.resistance_eps
         project_needle_rows(
             (coupling.needle_node_count, needle.body_inv_mass, needle.body_inv_inertia, needle.node_pos_body,
              needle_state.body_pos_prev, needle_state.body_quat_prev),
-            (tissue_inv_mass, state.tissue.particle_q_prev, tri_vertices),
+            (compliance, state.tissue.particle_q_prev, tri_vertices),
             (coupling.strand_friction, eps, dt, coupling.params.tip_friction, coupling.params.tear_force),
             work.needle_rows, work.tip_friction, needle_state.body_pos, needle_state.body_quat, tissue_q,
         )  # fmt: skip
@@ -515,7 +525,7 @@ class Solver:
                 work.row_weight,
                 work.row_tangent,
                 work.suture_inv_mass,
-                tissue_inv_mass,
+                compliance,
                 coupling.params.tear_force * dt * dt,
                 work.row_lambda,
                 suture_q,
@@ -524,7 +534,7 @@ class Solver:
         project_access_rows(
             work.access_rows, work.access_count,
             (coupling.needle_node_count, needle.body_inv_mass, needle.body_inv_inertia, needle.node_pos_body),
-            work.suture_inv_mass, tissue_inv_mass, tri_vertices, coupling.params.tear_force * dt * dt,
+            work.suture_inv_mass, compliance, tri_vertices, coupling.params.tear_force * dt * dt,
             work.access_lambda, needle_state.body_pos, needle_state.body_quat, suture_q, tissue_q,
         )  # fmt: skip
 
@@ -546,7 +556,7 @@ class Solver:
         coupling, cwork = model.coupling, state.work.coupling_work
         inv_mass = None if coupling is None else cwork.suture_inv_mass
         contact_w = None if coupling is None else cwork.suture_contact_w
-        tissue_w = None if coupling is None else self._row_inv_mass(model, state, dt)
+        tissue_w = None if coupling is None else state.work.compliance
         work.lam[:] = 0.0
         work.lam[1:, 0] = state.suture_tension
         work.begin(rod_state)

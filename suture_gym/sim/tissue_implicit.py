@@ -32,12 +32,15 @@ body at static equilibrium, so a resting body stays at rest for any ``h``):
   lambda c c^T)`` (``c = cof F g_k``; the ``J - gamma`` term has a zero vertex block because ``det F``
   is affine in each node), which is always SPD; optional Chebyshev acceleration over the sweeps (Wang 2015).
 
-Coupling rows (needle, suture) that move tissue nodes after the elastic solve see the tissue through
-:meth:`ImplicitTissue.row_inv_mass` (the diagonal of the substep's compliance ``A0^-1 / h^2``, not the bare
-``1 / m``) and their corrections are spread over the tissue by :meth:`ImplicitTissue.propagate_rows`
-(one solve with ``A0``): the linearised implicit response to the rows' impulses, scaled down where the rows'
-diagonal compliance estimate made it overshoot. Two sweeps per substep (``Solver.iterations = 2``) alternate
-the elastic solve and the rows; one sweep lets a 1 N tip fall through 100 kPa tissue (docs/tissue_integrator.md).
+Coupling rows (needle, suture) act after the elastic solve. They see the tissue through its substep compliance
+``C = A0^-1 / h^2`` among the vertices they touch (:meth:`ImplicitTissue.begin_rows`, the compliance tuple of
+:mod:`~suture_gym.sim.coupling.compliance`): a row's generalised inverse mass is ``n^T (sum_ab b_a b_b C_ab) n``
+and its impulse moves every touched vertex by its exact linearised response, so the rows are Gauss-Seidel on the
+Schur complement of the implicit step. :meth:`ImplicitTissue.propagate_rows` then spreads their summed impulses
+over the whole tissue (one solve with ``A0``; at the touched vertices it reproduces the rows' moves exactly) and
+adds their forces to the next sweep's solve: the tissue takes exactly the impulses the needle and thread gave it.
+Two sweeps per substep (``Solver.iterations = 2``) let the elastic solve carry the rows' load; with one, a tip
+pushed 1 N into 100 kPa tissue falls through it (docs/tissue_integrator.md).
 """
 
 from __future__ import annotations
@@ -371,44 +374,6 @@ def _begin_substep(q: np.ndarray, y: np.ndarray, external: np.ndarray, free: np.
             q[p, i] -= gravity_h2[i] * free[p, i]
 
 
-@njit(cache=True)
-def _row_impulses(q_before: np.ndarray, q: np.ndarray, free: np.ndarray, w: np.ndarray, impulse: np.ndarray) -> bool:
-    """``impulse = (q - q_before) / w`` (kg m) on free dofs of particles with ``w > 0``, else 0; whether any
-    is non-zero. ``w`` (N,) the rows' inverse masses, 1/kg."""
-    any_moved = False
-    for p in range(q.shape[0]):
-        for i in range(3):
-            value = 0.0
-            if w[p] > 0.0 and free[p, i] != 0.0:
-                value = (q[p, i] - q_before[p, i]) / w[p]
-            impulse[p, i] = value
-            any_moved |= value != 0.0
-    return any_moved
-
-
-@njit(cache=True)
-def _apply_propagation(
-    q_before: np.ndarray, q: np.ndarray, impulse: np.ndarray, response: np.ndarray, inv_h2: float, external: np.ndarray
-) -> None:
-    """``q <- q_before + s inv_h2 response`` with ``s`` in [0, 1] the least-squares factor that best reproduces
-    the rows' moves ``q - q_before`` at the particles they moved (see :meth:`ImplicitTissue.propagate_rows`);
-    ``external += inv_h2 impulse``. ``response``: ``A0^-1 impulse``, m s^2 (so ``inv_h2 response`` is in m)."""
-    overlap = 0.0
-    norm2 = 0.0
-    for p in range(q.shape[0]):
-        if impulse[p, 0] == 0.0 and impulse[p, 1] == 0.0 and impulse[p, 2] == 0.0:
-            continue
-        for i in range(3):
-            r = response[p, i] * inv_h2
-            overlap += r * (q[p, i] - q_before[p, i])
-            norm2 += r * r
-    scale = min(1.0, max(0.0, overlap / norm2)) if norm2 > 0.0 else 0.0
-    for p in range(q.shape[0]):
-        for i in range(3):
-            external[p, i] += inv_h2 * impulse[p, i]
-            q[p, i] = q_before[p, i] + scale * inv_h2 * response[p, i]
-
-
 def stiffness_matrix(tissue, q: np.ndarray | None = None) -> sp.csr_matrix:
     """Global Hessian of the elastic energy ``d2E/dx dx`` at positions ``q`` (default: the rest shape).
 
@@ -546,11 +511,16 @@ class ImplicitTissue:
         self.y = np.zeros((tissue.particle_count, 3))
         self.grad = np.zeros((tissue.particle_count, 3))
         self.external = np.zeros((tissue.particle_count, 3))
-        self._impulse = np.zeros((tissue.particle_count, 3))
         #: Whether the coupling rows moved the tissue since the substep's last elastic solve.
         self.rows_moved = False
-        self._response = np.zeros((tissue.particle_count, 3))
-        self._row_inv_mass: np.ndarray | None = None
+        #: Columns of ``A0^-1`` (over the free dofs) of each particle's three dofs, computed on first use.
+        self._columns: dict[int, np.ndarray] = {}
+        self._free_position = np.full(3 * tissue.particle_count, -1)
+        self._free_position[self.free_index] = np.arange(self.free_index.size)
+        self._slot = np.full(tissue.particle_count, -1, np.int32)
+        self._impulse = np.zeros((tissue.particle_count, 3))
+        self.compliance = (tissue.particle_inv_mass, self._slot, np.zeros(0, np.int32), np.zeros((0, 0)),
+                           self._impulse)  # fmt: skip
 
     def begin(self, q: np.ndarray, gravity: np.ndarray) -> None:
         """Store the inertial target ``y`` (the predicted ``q``) and move ``q`` to the warm start
@@ -569,47 +539,63 @@ class ImplicitTissue:
             t.tet_rest_volume, t.tet_mu, t.tet_lambda, self.active_tets, self.external, self.grad, with_gradient,
         )  # fmt: skip
 
-    def row_inv_mass(self) -> np.ndarray:
-        """``(N,)`` inverse masses (1/kg) for coupling rows: the mean of the three diagonal entries of the
-        substep compliance ``A0^-1 / h^2`` of each particle (``1/m`` for a particle without stiffness), 0 for
-        pinned particles. Computed once per integrator (one solve per free dof, batched)."""
-        if self._row_inv_mass is None:
-            n_free = self.free_index.size
-            diag = np.empty(n_free)
-            batch = 256
-            for start in range(0, n_free, batch):
-                stop = min(n_free, start + batch)
-                rhs = np.zeros((n_free, stop - start))
-                rhs[np.arange(start, stop), np.arange(stop - start)] = 1.0
-                diag[start:stop] = self.factor.solve(rhs)[np.arange(start, stop), np.arange(stop - start)]
-            full = np.zeros(3 * self.tissue.particle_count)
-            full[self.free_index] = diag * self.inv_h2
-            per_axis = full.reshape(-1, 3)
-            count = np.maximum(self.free.sum(axis=1), 1)
-            self._row_inv_mass = per_axis.sum(axis=1) / count
-        return self._row_inv_mass
+    def begin_rows(self, touched: np.ndarray) -> tuple:
+        """The coupling rows' compliance tuple for this substep (:mod:`~suture_gym.sim.coupling.compliance`):
+        the substep compliance ``C = A0^-1 / h^2`` (1/kg) among the free particles of ``touched`` ((N,) bool,
+        the vertices the rows act on), gathered from cached columns of ``A0^-1`` (``A0`` is constant, so each
+        particle's columns are solved for once). Resets the impulse sum :meth:`propagate_rows` spreads."""
+        self._impulse[...] = 0.0
+        vertices = np.flatnonzero(touched & self.free.any(axis=1)).astype(np.int32)
+        if np.array_equal(vertices, self.compliance[2]):  # the same vertices as last substep: the same matrix
+            return self.compliance
+        self._slot[:] = -1
+        self._slot[vertices] = np.arange(vertices.size, dtype=np.int32)
+        columns = self._particle_columns(vertices)  # (n_free, 3m)
+        dofs = (3 * vertices[:, None] + np.arange(3)).ravel()
+        position = self._free_position[dofs]
+        matrix = np.zeros((dofs.size, dofs.size))
+        free = position >= 0
+        matrix[free] = columns[position[free]] * self.inv_h2
+        self.compliance = (self.tissue.particle_inv_mass, self._slot, vertices, matrix, self._impulse)
+        return self.compliance
+
+    def _particle_columns(self, particles: np.ndarray) -> np.ndarray:
+        """``(n_free, 3 len(particles))``: the columns of ``A0^-1`` of each particle's x, y, z dofs (zero for a
+        held dof)."""
+        missing = [int(p) for p in particles if int(p) not in self._columns]
+        if missing:
+            dofs = (3 * np.asarray(missing)[:, None] + np.arange(3)).ravel()
+            position = self._free_position[dofs]
+            rhs = np.zeros((self.free_index.size, dofs.size))
+            free = np.flatnonzero(position >= 0)
+            rhs[position[free], free] = 1.0
+            solved = self.factor.solve(rhs)
+            solved[:, position < 0] = 0.0
+            for k, p in enumerate(missing):
+                self._columns[p] = solved[:, 3 * k : 3 * k + 3].copy()
+        if particles.size == 0:
+            return np.zeros((self.free_index.size, 0))
+        return np.concatenate([self._columns[int(p)] for p in particles], axis=1)
 
     def propagate_rows(self, q_before: np.ndarray, q: np.ndarray) -> None:
-        """Spread the coupling rows' corrections over the tissue.
+        """Spread the coupling rows' impulses of this sweep over the whole tissue.
 
-        With ``d = q - q_before`` (non-zero only at the nodes the rows moved, each by ``w_eff p``), the rows'
-        position-level impulses are ``p = d / w_eff`` (kg m; forces ``p / h^2`` N) and the tissue's linearised
-        implicit response is ``Delta = A0^-1 p / h^2``. The rows estimated each tissue point's compliance from
-        the diagonal ``w_eff`` alone, so where a row acts on several nodes that move together (a point inside a
-        tet or triangle) the response overshoots what the row asked for, by up to the number of nodes; applied
-        as is, the rows and the tissue then oscillate and diverge (measured: NeedleInsert at 100 kPa). So
-        ``q = q_before + s Delta`` with ``s`` in ``[0, 1]`` the least-squares factor that best reproduces ``d``
-        at the moved nodes (1 for rows on single, uncorrelated nodes); :attr:`external` gains the full ``p / h^2``,
-        so the next sweep's solve carries the rows' whole load (the last sweep's ``1 - s`` share is lost: the
-        base under a 1 N tip on a 100 kPa pad carries 94% of it with two sweeps).
+        The rows moved the vertices they touch (the set ``S``) by ``C_{S,:} P`` (their exact linearised
+        response, :mod:`~suture_gym.sim.coupling.compliance`) and summed the tissue's impulses ``P`` (kg m) in
+        the compliance tuple. The whole tissue's response is ``Delta = A0^-1 P / h^2`` (one solve); it equals
+        the rows' moves at ``S``, so ``q = q_before + Delta`` keeps them and moves the rest of the tissue with
+        them. :attr:`external` gains the rows' forces ``P / h^2`` (N), so the next sweep's elastic solve carries
+        their load; the needle and thread took ``-P``, so momentum is exchanged exactly.
         """
         impulse = self._impulse
-        self.rows_moved = _row_impulses(q_before, q, self.free_mask, self.row_inv_mass(), impulse)
+        self.rows_moved = bool(np.any(impulse))
         if not self.rows_moved:
             return
-        response = self._response
-        response.reshape(-1)[self.free_index] = self.factor.solve(impulse.reshape(-1)[self.free_index])
-        _apply_propagation(q_before, q, impulse, response, self.inv_h2, self.external)
+        flat = q.reshape(-1)
+        flat[...] = q_before.reshape(-1)
+        flat[self.free_index] += self.factor.solve(impulse.reshape(-1)[self.free_index]) * self.inv_h2
+        self.external += impulse * self.inv_h2
+        impulse[...] = 0.0
 
 
 class QuasiNewton(ImplicitTissue):

@@ -7,6 +7,14 @@ import math
 import numpy as np
 from numba import njit
 
+from suture_gym.sim.coupling.compliance import (
+    apply_impulse,
+    is_diagonal,
+    move_point,
+    point_compliance,
+    point_inv_mass,
+    weighted_inv_mass,
+)
 from suture_gym.sim.coupling.constraints import (
     node_path_constraint,
     node_surface_constraint,
@@ -32,7 +40,7 @@ def _project_contact(
     bary,
     normal,
     tri_vertices,
-    tissue_inv_mass,
+    tissue,
     eps,
     floor,
     lam,
@@ -57,37 +65,56 @@ def _project_contact(
     inv_inertia = world_inv_inertia(needle_quat, needle_inv_inertia_body)
     ang = np.cross(q - needle_pos, normal)
     w = rigid_generalized_inv_mass(needle_inv_mass, inv_inertia, normal, ang)
-    w += bary[0] ** 2 * tissue_inv_mass[i0] + bary[1] ** 2 * tissue_inv_mass[i1] + bary[2] ** 2 * tissue_inv_mass[i2]
+    tissue_w = tissue[0]
+    if is_diagonal(tissue):
+        w += bary[0] ** 2 * tissue_w[i0] + bary[1] ** 2 * tissue_w[i1] + bary[2] ** 2 * tissue_w[i2]
+    else:
+        w += point_inv_mass(tissue, tri_vertices[tri], bary, 3, normal)
     dlam = xpbd_delta_lambda(c, w, 0.0, lam)
     if lam + dlam < 0.0:
         dlam = -lam
     rigid_apply(needle_pos, needle_quat, needle_inv_mass, inv_inertia, normal, ang, dlam)
-    for k in range(3):
-        vi = tri_vertices[tri, k]
-        tissue_q[vi] -= tissue_inv_mass[vi] * bary[k] * dlam * normal
+    if is_diagonal(tissue):
+        for k in range(3):
+            vi = tri_vertices[tri, k]
+            tissue_q[vi] -= tissue_w[vi] * bary[k] * dlam * normal
+    else:
+        apply_impulse(tissue, tri_vertices[tri], bary, 3, dlam * normal, tissue_q)
     return lam + dlam
 
 
 @njit(cache=True)
-def _anchor_point(tri, bary, tri_vertices, tissue_q, tissue_inv_mass, patch):
+def _anchor_point(tri, bary, tri_vertices, tissue_q, tissue, patch):
     """The tissue point ``p`` (3,) m an anchor row holds the tip against and its generalised inverse mass
-    ``sum_k c_k^2 w_k`` (1/kg): the patch's ``sum_i c_i x_i + offset`` (:class:`CouplingWork` ``tip_patch``)
-    when it has vertices, else the point ``sum_k b_k x_k`` of triangle ``tri``."""
+    ``(3, 3)`` (1/kg): ``sum_k c_k^2 w_k I`` with the diagonal compliance, the point's compliance block
+    otherwise (:mod:`~suture_gym.sim.coupling.compliance`). The point is the patch's ``sum_i c_i x_i +
+    offset`` (:class:`CouplingWork` ``tip_patch``) when it has vertices, else ``sum_k b_k x_k`` of ``tri``."""
     vertex, weight, count, offset, _ = patch
+    k_tissue = np.zeros((3, 3))
     if count[0] == 0:
         i0 = tri_vertices[tri, 0]
         i1 = tri_vertices[tri, 1]
         i2 = tri_vertices[tri, 2]
-        w_tissue = (
-            bary[0] ** 2 * tissue_inv_mass[i0] + bary[1] ** 2 * tissue_inv_mass[i1] + bary[2] ** 2 * tissue_inv_mass[i2]
-        )
-        return bary[0] * tissue_q[i0] + bary[1] * tissue_q[i1] + bary[2] * tissue_q[i2], w_tissue
+        p = bary[0] * tissue_q[i0] + bary[1] * tissue_q[i1] + bary[2] * tissue_q[i2]
+        if is_diagonal(tissue):
+            w = tissue[0]
+            w_tissue = bary[0] ** 2 * w[i0] + bary[1] ** 2 * w[i1] + bary[2] ** 2 * w[i2]
+            for a in range(3):
+                k_tissue[a, a] = w_tissue
+        else:
+            point_compliance(tissue, tri_vertices[tri], bary, 3, k_tissue)
+        return p, k_tissue
     p = offset.copy()
     w_tissue = 0.0
     for a in range(count[0]):
         p += weight[a] * tissue_q[vertex[a]]
-        w_tissue += weight[a] ** 2 * tissue_inv_mass[vertex[a]]
-    return p, w_tissue
+        w_tissue += weight[a] ** 2 * tissue[0][vertex[a]]
+    if is_diagonal(tissue):
+        for a in range(3):
+            k_tissue[a, a] = w_tissue
+    else:
+        point_compliance(tissue, vertex, weight, count[0], k_tissue)
+    return p, k_tissue
 
 
 @njit(cache=True)
@@ -99,7 +126,7 @@ def _project_anchor(
     bary,
     normal,
     tri_vertices,
-    tissue_inv_mass,
+    tissue,
     eps,
     floor,
     friction,
@@ -132,7 +159,7 @@ def _project_anchor(
     the tip sticks). The needle takes ``P`` at the tip, tissue vertex ``k`` moves by ``-w_k c_k P``. Updates the
     needle pose, ``tissue_q`` and ``friction_out`` (4,).
     """
-    p, w_tissue = _anchor_point(tri, bary, tri_vertices, tissue_q, tissue_inv_mass, patch)
+    p, k_tissue = _anchor_point(tri, bary, tri_vertices, tissue_q, tissue, patch)
     alpha = patch[4][0] / (dt * dt)
     if alpha > 0.0:
         floor = 0.0
@@ -146,8 +173,11 @@ def _project_anchor(
     inv_inertia = world_inv_inertia(needle_quat, needle_inv_inertia_body)
     r = q - needle_pos
     k = point_inv_mass_matrix(needle_inv_mass, inv_inertia, r)
-    for a in range(3):
-        k[a, a] += w_tissue
+    if is_diagonal(tissue):
+        for a in range(3):
+            k[a, a] += k_tissue[a, a]
+    else:
+        k += k_tissue
     if alpha > 0.0:
         d = d - alpha * (lam * normal + friction_out[:3])
         for a in range(3):
@@ -175,7 +205,13 @@ def _project_anchor(
     friction_out[:3] += impulse - (impulse @ normal) * normal
     rigid_apply(needle_pos, needle_quat, needle_inv_mass, inv_inertia, impulse, np.cross(r, impulse), 1.0)
     vertex, weight, count = patch[0], patch[1], patch[2][0]
-    if count == 0:
+    tissue_inv_mass = tissue[0]
+    if not is_diagonal(tissue):
+        if count == 0:
+            apply_impulse(tissue, tri_vertices[tri], bary, 3, impulse, tissue_q)
+        else:
+            apply_impulse(tissue, vertex, weight, count, impulse, tissue_q)
+    elif count == 0:
         for a in range(3):
             vi = tri_vertices[tri, a]
             tissue_q[vi] -= tissue_inv_mass[vi] * bary[a] * impulse
@@ -212,7 +248,7 @@ def project_needle_rows(needle, tissue, coefficients, rows, tip_friction_out, ne
         tip_friction_out: ``(4,)``. needle_pos: ``(3,)`` m, needle_quat: ``(4,)``, tissue_q: ``(N, 3)`` m.
     """
     needle_node_count, needle_inv_mass, needle_inv_inertia_body, needle_node_body = needle[:4]
-    tissue_inv_mass, _, tri_vertices = tissue
+    compliance, _, tri_vertices = tissue
     _, eps, dt, tip_friction, _ = coefficients
     row_kind, row_tri, row_bary, row_contact_normal, row_floor = rows[:5]
     row_lambda = rows[8]
@@ -223,17 +259,17 @@ def project_needle_rows(needle, tissue, coefficients, rows, tip_friction_out, ne
         if kind == ROW_ANCHOR or kind == ROW_EXIT:
             row_lambda[i] = _project_anchor(
                 needle_inv_mass, needle_inv_inertia_body, needle_node_body[i], row_tri[i], row_bary[i],
-                row_contact_normal[i], tri_vertices, tissue_inv_mass, eps, row_floor[i], tip_friction,
+                row_contact_normal[i], tri_vertices, compliance, eps, row_floor[i], tip_friction,
                 row_lambda[i], tip_friction_out, rows[10], dt, needle_pos, needle_quat, tissue_q,
             )  # fmt: skip
         elif kind != ROW_PATH:
             row_lambda[i] = _project_contact(
                 needle_inv_mass, needle_inv_inertia_body, needle_node_body[i], row_tri[i], row_bary[i],
-                row_contact_normal[i], tri_vertices, tissue_inv_mass, eps, row_floor[i], row_lambda[i],
+                row_contact_normal[i], tri_vertices, compliance, eps, row_floor[i], row_lambda[i],
                 needle_pos, needle_quat, tissue_q,
             )  # fmt: skip
         else:
-            _project_path_row(i, needle, tissue_inv_mass, coefficients, rows, needle_pos, needle_quat, tissue_q)
+            _project_path_row(i, needle, compliance, coefficients, rows, needle_pos, needle_quat, tissue_q)
             _project_axial_friction(i, needle, tissue, coefficients, rows, needle_pos, needle_quat, tissue_q)
     if rows[11][3][0] > 0.0:
         project_cutting(needle, tissue, dt, rows[11], needle_pos, needle_quat, tissue_q)
@@ -249,13 +285,13 @@ def project_cutting(needle, tissue, dt, cut, needle_pos, needle_quat, tissue_q):
     against the needle's generalised inverse mass along ``t`` at the tip plus the tissue point's.
 
     Args:
-        needle: as :func:`project_needle_rows`. tissue: ``(inv_mass (N,) 1/kg, q_prev (N, 3) m, tri_vertices)``.
+        needle: as :func:`project_needle_rows`. tissue: ``(compliance, q_prev (N, 3) m, tri_vertices)``.
         dt: s. cut: ``CouplingWork.cut_rows`` ``(tissue (4,), weight (4,), direction (3,), cap (1,) N,
             lambda (1,) kg m)``; ``lambda`` accumulates over the sweeps of the substep.
         needle_pos, needle_quat, tissue_q: updated in place.
     """
     _, needle_inv_mass, needle_inv_inertia_body, needle_node_body, needle_pos_prev, needle_quat_prev = needle
-    tissue_inv_mass, tissue_q_prev, _ = tissue
+    compliance, tissue_q_prev, _ = tissue
     idx, wt, t, cap_force, lam = cut
     cap = cap_force[0] * dt * dt
     inv_inertia = world_inv_inertia(needle_quat, needle_inv_inertia_body)
@@ -265,31 +301,18 @@ def project_cutting(needle, tissue, dt, cut, needle_pos, needle_quat, tissue_q):
     p = tissue_point(tissue_q, idx, wt)
     p0 = tissue_point(tissue_q_prev, idx, wt)
     advance = ((q - q0) - (p - p0)) @ t
-    w_tissue = 0.0
-    for a in range(idx.shape[0]):
-        w_tissue += wt[a] * wt[a] * tissue_inv_mass[idx[a]]
+    w_tissue = weighted_inv_mass(compliance, idx, wt, t)
     w = rigid_generalized_inv_mass(needle_inv_mass, inv_inertia, t, np.cross(r, t)) + w_tissue
     dlam = xpbd_delta_lambda(advance, w, 0.0, 0.0)
     total = min(max(lam[0] + dlam, -cap), 0.0)
     dlam = total - lam[0]
     lam[0] = total
     rigid_apply(needle_pos, needle_quat, needle_inv_mass, inv_inertia, t, np.cross(r, t), dlam)
-    for a in range(idx.shape[0]):
-        tissue_q[idx[a]] -= tissue_inv_mass[idx[a]] * wt[a] * dlam * t
+    move_point(compliance, idx, wt, dlam, t, tissue_q)
 
 
 @njit(cache=True)
-def _path_row_tissue_w(i, tissue_inv_mass, rows):
-    """``sum_a w_a^2 w_tissue_a`` (1/kg) of the path point of node ``i``'s path row."""
-    idx, wt = rows[5][i], rows[6][i]
-    w_tissue = 0.0
-    for a in range(idx.shape[0]):
-        w_tissue += wt[a] * wt[a] * tissue_inv_mass[idx[a]]
-    return w_tissue
-
-
-@njit(cache=True)
-def _project_path_row(i, needle, tissue_inv_mass, coefficients, rows, needle_pos, needle_quat, tissue_q):
+def _project_path_row(i, needle, compliance, coefficients, rows, needle_pos, needle_quat, tissue_q):
     """Needle node ``i``'s node-path row (eq. 1, :func:`node_path_constraint`), rigid and two-way, its
     multiplier kept above ``-tear_force dt^2``. Arguments as :func:`project_needle_rows`."""
     _, needle_inv_mass, needle_inv_inertia_body, needle_node_body = needle[:4]
@@ -299,16 +322,15 @@ def _project_path_row(i, needle, tissue_inv_mass, coefficients, rows, needle_pos
     q = body_point(needle_pos, needle_quat, needle_node_body[i])
     r = q - needle_pos
     p = tissue_point(tissue_q, idx, wt)
-    w_tissue = _path_row_tissue_w(i, tissue_inv_mass, rows)
     ok, c, n = node_path_constraint(q, p, t)
     if ok:
+        w_tissue = weighted_inv_mass(compliance, idx, wt, n)
         w = rigid_generalized_inv_mass(needle_inv_mass, inv_inertia, n, np.cross(r, n)) + w_tissue
         dlam = xpbd_delta_lambda(c, w, 0.0, row_lambda[i])
         dlam = max(row_lambda[i] + dlam, -tear_force * dt * dt) - row_lambda[i]
         row_lambda[i] += dlam
         rigid_apply(needle_pos, needle_quat, needle_inv_mass, inv_inertia, n, np.cross(r, n), dlam)
-        for a in range(idx.shape[0]):
-            tissue_q[idx[a]] -= tissue_inv_mass[idx[a]] * wt[a] * dlam * n
+        move_point(compliance, idx, wt, dlam, n, tissue_q)
 
 
 @njit(cache=True)
@@ -317,7 +339,7 @@ def _project_axial_friction(i, needle, tissue, coefficients, rows, needle_pos, n
     along the tangent since the start of the substep is removed up to a multiplier of ``strand_friction[i] dt^2``
     in magnitude (static below the cap, sliding at the cap). Arguments as :func:`project_needle_rows`."""
     _, needle_inv_mass, needle_inv_inertia_body, needle_node_body, needle_pos_prev, needle_quat_prev = needle
-    tissue_inv_mass, tissue_q_prev, _ = tissue
+    compliance, tissue_q_prev, _ = tissue
     strand_friction, _, dt, _, _ = coefficients
     idx, wt, t, row_friction_lambda = rows[5][i], rows[6][i], rows[7][i], rows[9]
     cap = strand_friction[i] * dt * dt
@@ -330,13 +352,12 @@ def _project_axial_friction(i, needle, tissue, coefficients, rows, needle_pos, n
     p = tissue_point(tissue_q, idx, wt)
     p0 = tissue_point(tissue_q_prev, idx, wt)
     slip = ((q - q0) - (p - p0)) @ t
-    w = rigid_generalized_inv_mass(needle_inv_mass, inv_inertia, t, np.cross(r, t)) + _path_row_tissue_w(
-        i, tissue_inv_mass, rows
+    w = rigid_generalized_inv_mass(needle_inv_mass, inv_inertia, t, np.cross(r, t)) + weighted_inv_mass(
+        compliance, idx, wt, t
     )
     dlam = xpbd_delta_lambda(slip, w, 0.0, 0.0)
     total = min(max(row_friction_lambda[i] + dlam, -cap), cap)
     dlam = total - row_friction_lambda[i]
     row_friction_lambda[i] = total
     rigid_apply(needle_pos, needle_quat, needle_inv_mass, inv_inertia, t, np.cross(r, t), dlam)
-    for a in range(idx.shape[0]):
-        tissue_q[idx[a]] -= tissue_inv_mass[idx[a]] * wt[a] * dlam * t
+    move_point(compliance, idx, wt, dlam, t, tissue_q)

@@ -5,6 +5,13 @@ from __future__ import annotations
 import numpy as np
 from numba import njit
 
+from suture_gym.sim.coupling.compliance import (
+    apply_impulse,
+    is_diagonal,
+    move_point,
+    point_compliance,
+    point_inv_mass,
+)
 from suture_gym.sim.coupling.constraints import (
     node_access_constraint,
     node_path_constraint,
@@ -22,8 +29,8 @@ from suture_gym.sim.rigid import (
 
 
 @njit(cache=True)
-def embedded_inv_mass(needle_node_count, node_rows, access_rows, access_count, tri_vertices, tissue_inv_mass,
-                      suture_inv_mass, out):  # fmt: skip
+def embedded_inv_mass(needle_node_count, node_rows, access_rows, access_count, tri_vertices, tissue, suture_inv_mass,
+                      out):  # fmt: skip
     """Inverse masses (1/kg) the projections use for the suture nodes this substep: a node held on a path
     (node-path row) carries the inertia of the tissue point it is embedded in, ``min(w_node, sum_k b_k^2 w_k)``,
     and a node of a strand piece through an access point that of the access point,
@@ -37,7 +44,9 @@ def embedded_inv_mass(needle_node_count, node_rows, access_rows, access_count, t
     the rest evenly between node and tissue. It slides along the path freely (no row along the tangent); the
     same holds for the thread in the hole at an access point. A thread node merely touching the surface
     keeps its own mass: it cannot dent the tissue (an embedded mass there makes the contact push the surface
-    by half of every penetration, which turned out violent).
+    by half of every penetration, which turned out violent). ``tissue`` is the compliance tuple
+    (:mod:`~suture_gym.sim.coupling.compliance`); with the implicit one a point's inverse mass is the mean of
+    its compliance block's diagonal.
     """
     row_kind, _, row_tissue, row_weight, _ = node_rows
     access_node, access_weight, _, access_tri, access_bary = access_rows
@@ -49,15 +58,11 @@ def embedded_inv_mass(needle_node_count, node_rows, access_rows, access_count, t
         i = nn + j - 1
         if row_kind[i] != ROW_PATH:
             continue
-        w = 0.0
-        for a in range(PATH_ROW_VERTICES):
-            w += row_weight[i, a] ** 2 * tissue_inv_mass[row_tissue[i, a]]
+        w = _isotropic_inv_mass(tissue, row_tissue[i], row_weight[i], PATH_ROW_VERTICES)
         if w > 0.0 and w < out[j]:
             out[j] = w
     for a in range(access_count):
-        w = 0.0
-        for v in range(3):
-            w += access_bary[a, v] ** 2 * tissue_inv_mass[tri_vertices[access_tri[a], v]]
+        w = _isotropic_inv_mass(tissue, tri_vertices[access_tri[a]], access_bary[a], 3)
         if w <= 0.0:
             continue
         for e in range(4):
@@ -69,6 +74,21 @@ def embedded_inv_mass(needle_node_count, node_rows, access_rows, access_count, t
 
 
 @njit(cache=True)
+def _isotropic_inv_mass(tissue, idx, weight, count) -> float:
+    """``sum_a b_a^2 w_a`` (1/kg) with the diagonal compliance; the mean diagonal of the point's compliance
+    block otherwise."""
+    if is_diagonal(tissue):
+        w = tissue[0]
+        total = 0.0
+        for a in range(count):
+            total += weight[a] ** 2 * w[idx[a]]
+        return total
+    k = np.empty((3, 3))
+    point_compliance(tissue, idx, weight, count, k)
+    return (k[0, 0] + k[1, 1] + k[2, 2]) / 3.0
+
+
+@njit(cache=True)
 def project_suture_path_rows(
     needle_node_count,
     row_kind,
@@ -76,7 +96,7 @@ def project_suture_path_rows(
     row_weight,
     row_tangent,
     suture_inv_mass,
-    tissue_inv_mass,
+    tissue,
     force_cap,
     row_lambda,
     suture_q,
@@ -98,19 +118,22 @@ def project_suture_path_rows(
         if not ok:
             continue
         w = suture_inv_mass[j]
-        for a in range(PATH_ROW_VERTICES):
-            w += wt[a] * wt[a] * tissue_inv_mass[idx[a]]
+        if is_diagonal(tissue):
+            tissue_inv_mass = tissue[0]
+            for a in range(PATH_ROW_VERTICES):
+                w += wt[a] * wt[a] * tissue_inv_mass[idx[a]]
+        else:
+            w += point_inv_mass(tissue, idx, wt, PATH_ROW_VERTICES, n)
         dlam = xpbd_delta_lambda(c, w, 0.0, row_lambda[i])
         dlam = max(row_lambda[i] + dlam, -force_cap) - row_lambda[i]
         row_lambda[i] += dlam
         suture_q[j] += suture_inv_mass[j] * dlam * n
-        for a in range(PATH_ROW_VERTICES):
-            tissue_q[idx[a]] -= tissue_inv_mass[idx[a]] * wt[a] * dlam * n
+        move_point(tissue, idx, wt, dlam, n, tissue_q)
 
 
 @njit(cache=True)
-def suture_contact_rows(needle_node_count, eps, contact_rows, tri_vertices, tissue_q, tissue_inv_mass, suture_q,
-                        out_gap, out_normal, out_tissue_w):  # fmt: skip
+def suture_contact_rows(needle_node_count, eps, contact_rows, tri_vertices, tissue_q, tissue, suture_q, out_gap,
+                        out_normal, out_tissue_w):  # fmt: skip
     """The suture nodes' contact rows (:func:`node_surface_constraint` in the row's frame) as the rod's
     one-sided contact rows: ``gap = C - floor`` (``row_floor``, :func:`contact_floors`) at the current
     positions, ``normal = n``, and the generalised inverse mass of the surface point ``sum_v b_v^2 w_v`` (1/kg)
@@ -139,13 +162,16 @@ def suture_contact_rows(needle_node_count, eps, contact_rows, tri_vertices, tiss
         )
         out_gap[j] = c - row_floor[i]
         out_normal[j] = row_contact_normal[i]
-        for v in range(3):
-            out_tissue_w[j] += b[v] * b[v] * tissue_inv_mass[tri_vertices[tri, v]]
+        if is_diagonal(tissue):
+            for v in range(3):
+                out_tissue_w[j] += b[v] * b[v] * tissue[0][tri_vertices[tri, v]]
+        else:
+            out_tissue_w[j] = point_inv_mass(tissue, tri_vertices[tri], b, 3, row_contact_normal[i])
 
 
 @njit(cache=True)
-def apply_contact_reaction(needle_node_count, contact_rows, tri_vertices, contact_normal, z, tissue_inv_mass,
-                           row_lambda, tissue_q):  # fmt: skip
+def apply_contact_reaction(needle_node_count, contact_rows, tri_vertices, contact_normal, z, tissue, row_lambda,
+                           tissue_q):  # fmt: skip
     """Give the tissue the reaction of the rod's contact steps ``z[j, 6]`` (kg m) on suture nodes with a
     node-triangle row: triangle vertex ``v`` moves by ``-w_v b_v z normal``, so the exchange conserves
     momentum. Adds each step to ``row_lambda``. Updates ``tissue_q``."""
@@ -157,9 +183,7 @@ def apply_contact_reaction(needle_node_count, contact_rows, tri_vertices, contac
         if (row_kind[i] != ROW_TRIANGLE and row_kind[i] != ROW_WALL) or dlam == 0.0:
             continue
         row_lambda[i] += dlam
-        for v in range(3):
-            vi = tri_vertices[row_tri[i], v]
-            tissue_q[vi] -= tissue_inv_mass[vi] * row_bary[i, v] * dlam * contact_normal[j]
+        move_point(tissue, tri_vertices[row_tri[i]], row_bary[i], dlam, contact_normal[j], tissue_q)
 
 
 @njit(cache=True)
@@ -171,8 +195,8 @@ def _strand_point(node, needle_node_count, needle_pos, needle_quat, needle_node_
 
 
 @njit(cache=True)
-def project_access_rows(access, access_count, needle, suture_inv_mass, tissue_inv_mass, tri_vertices, force_cap,
-                        access_lambda, needle_pos, needle_quat, suture_q, tissue_q):  # fmt: skip
+def project_access_rows(access, access_count, needle, suture_inv_mass, tissue, tri_vertices, force_cap, access_lambda,
+                        needle_pos, needle_quat, suture_q, tissue_q):  # fmt: skip
     """One Gauss-Seidel pass over the first ``access_count`` node-access rows (eq. 3, inequality ``C <= 0``),
     two-way, each multiplier kept within ``force_cap`` (kg m, the tear force times ``dt^2``) in magnitude.
 
@@ -186,7 +210,8 @@ def project_access_rows(access, access_count, needle, suture_inv_mass, tissue_in
         access: ``CouplingWork.access_rows``: ``(access_node (2K, 4), access_weight (2K, 4), access_rest (2K,) m,
             access_tri (2K,), access_bary (2K, 3))``.
         needle: ``(Nn, inv_mass 1/kg, inv_inertia_body (3, 3), node_body (Nn, 3) m)``.
-        suture_inv_mass: ``(Ns,)`` 1/kg. tissue_inv_mass: ``(N,)`` 1/kg. tri_vertices: ``(F, 3)``.
+        suture_inv_mass: ``(Ns,)`` 1/kg. tissue: the compliance tuple (:mod:`~suture_gym.sim.coupling.compliance`).
+        tri_vertices: ``(F, 3)``.
         access_lambda: ``(2K,)`` kg m. needle_pos: ``(3,)`` m. needle_quat: ``(4,)``. suture_q: ``(Ns, 3)`` m.
         tissue_q: ``(N, 3)`` m.
     """
@@ -199,7 +224,7 @@ def project_access_rows(access, access_count, needle, suture_inv_mass, tissue_in
         w_tissue_scale = 0.0
         for v in range(3):
             b += access_bary[a, v] * tissue_q[tri_vertices[tri, v]]
-            w_tissue_scale += access_bary[a, v] ** 2 * tissue_inv_mass[tri_vertices[tri, v]]
+            w_tissue_scale += access_bary[a, v] ** 2 * tissue[0][tri_vertices[tri, v]]
         ends = np.zeros((2, 3))
         points = np.zeros((4, 3))
         for e in range(4):
@@ -211,7 +236,10 @@ def project_access_rows(access, access_count, needle, suture_inv_mass, tissue_in
         gs = ga + gb
         lin = np.zeros(3)
         ang = np.zeros(3)
-        w = w_tissue_scale * (gs @ gs)
+        if is_diagonal(tissue):
+            w = w_tissue_scale * (gs @ gs)
+        else:
+            w = point_inv_mass(tissue, tri_vertices[tri], access_bary[a], 3, gs)
         for e in range(4):
             node = access_node[a, e]
             g = access_weight[a, e] * (ga if e < 2 else gb)
@@ -234,6 +262,9 @@ def project_access_rows(access, access_count, needle, suture_inv_mass, tissue_in
                 g = access_weight[a, e] * (ga if e < 2 else gb)
                 sn = node - nn + 1
                 suture_q[sn] += suture_inv_mass[sn] * dlam * g
-        for v in range(3):
-            vi = tri_vertices[tri, v]
-            tissue_q[vi] -= tissue_inv_mass[vi] * access_bary[a, v] * dlam * gs
+        if is_diagonal(tissue):
+            for v in range(3):
+                vi = tri_vertices[tri, v]
+                tissue_q[vi] -= tissue[0][vi] * access_bary[a, v] * dlam * gs
+        else:
+            apply_impulse(tissue, tri_vertices[tri], access_bary[a], 3, dlam * gs, tissue_q)
