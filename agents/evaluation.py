@@ -20,14 +20,16 @@ import numpy as np
 
 @dataclass
 class Episode:
-    """One evaluated episode: return, length (env steps), success, mean |tip force| (N), final gap (m), and how
-    it ended (:func:`episode_end`)."""
+    """One evaluated episode: return, length (env steps), success, mean |tip force| (N), the largest force of the
+    haptic reaction on the needle (``|info["haptic_wrench"][:3]|``, N), final gap (m), and how it ended
+    (:func:`episode_end`)."""
 
     seed: int
     episode_return: float
     length: int
     success: bool
     mean_tip_force: float
+    max_haptic_force: float
     final_gap: float
     truncated: bool
     diverged: bool
@@ -142,7 +144,9 @@ def evaluate(
 
     Returns:
         ``{env_id, env_kwargs, policy, episodes, seed, success_rate, success_rate_stderr, mean_return,
-        std_return, mean_episode_length, mean_tip_force, mean_final_gap, diverged_episodes, end_counts,
+        std_return, mean_episode_length, mean_tip_force, max_haptic_force (N, over all episodes),
+        median_max_haptic_force (N, the median of each episode's largest), mean_final_gap, diverged_episodes,
+        end_counts,
         per_episode}``; ``end_counts`` counts the episodes by how they ended (:data:`ENDS`, zeros left out).
     """
     import suture_gym  # noqa: F401  (registers the SutureGym ids)
@@ -162,7 +166,7 @@ def evaluate(
         obs, info = env.reset(seed=seed + k)
         if hasattr(act, "reset"):
             act.reset()
-        total, length, forces, done = 0.0, 0, [], False
+        total, length, forces, haptic, done = 0.0, 0, [], 0.0, False
         terminated = truncated = False
         while not done:
             obs, reward, terminated, truncated, info = env.step(act(obs))
@@ -170,6 +174,8 @@ def evaluate(
             length += 1
             if "tip_force" in info:
                 forces.append(abs(float(info["tip_force"])))
+            if "haptic_wrench" in info:
+                haptic = max(haptic, float(np.linalg.norm(info["haptic_wrench"][:3])))
             done = terminated or truncated
         records.append(
             Episode(
@@ -178,6 +184,7 @@ def evaluate(
                 length=length,
                 success=bool(info.get("is_success", False)),
                 mean_tip_force=float(np.mean(forces)) if forces else math.nan,
+                max_haptic_force=haptic,
                 final_gap=float(info.get("wound_gap", math.nan)),
                 truncated=bool(truncated),
                 diverged=bool(info.get("diverged", False)),
@@ -202,6 +209,8 @@ def evaluate(
         "std_return": float(returns.std()),
         "mean_episode_length": float(np.mean([r.length for r in records])),
         "mean_tip_force": _nanmean([r.mean_tip_force for r in records]),
+        "max_haptic_force": float(max(r.max_haptic_force for r in records)),
+        "median_max_haptic_force": float(np.median([r.max_haptic_force for r in records])),
         "mean_final_gap": _nanmean([r.final_gap for r in records]),
         "diverged_episodes": int(sum(r.diverged for r in records)),
         "end_counts": {name: count for name in ENDS if (count := sum(r.end == name for r in records))},

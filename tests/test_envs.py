@@ -16,7 +16,7 @@ from suture_gym.envs import ENV_IDS, GOAL_ENV_IDS, SutureEnv, SutureGoalEnv
 
 ALL_IDS = list(ENV_IDS) + list(GOAL_ENV_IDS)
 CONFIGS = Path(__file__).resolve().parents[1] / "configs" / "envs"
-INFO_KEYS = ("is_success", "punctured", "tip_force", "wound_gap", "diverged", "cost")
+INFO_KEYS = ("is_success", "punctured", "tip_force", "haptic_wrench", "wound_gap", "diverged", "cost")
 _ENVS: dict = {}
 
 
@@ -31,6 +31,11 @@ def _terms(env) -> tuple:
     return env.task_cls.GOAL_TERMS if isinstance(env, SutureGoalEnv) else env.task_cls.TERMS
 
 
+def _plain(info: dict) -> list:
+    """``info`` as a sorted, comparable list (arrays as their bytes)."""
+    return sorted((k, v.tobytes() if isinstance(v, np.ndarray) else v) for k, v in info.items())
+
+
 def _check_step(env, obs, reward, info):
     assert env.observation_space.contains(obs)
     flat = [obs] if isinstance(obs, np.ndarray) else list(obs.values())
@@ -39,6 +44,9 @@ def _check_step(env, obs, reward, info):
     for key in INFO_KEYS:
         assert key in info
     assert info["cost"] >= 0.0
+    wrench = info["haptic_wrench"]
+    assert wrench.shape == (6,) and wrench.dtype == np.float64 and np.all(np.isfinite(wrench))
+    np.testing.assert_array_equal(wrench, env.unwrapped.sim.state.needle_reaction)
     terms = [info[f"reward_{t}"] for t in _terms(env)]
     assert math.fsum(terms) == reward
 
@@ -86,7 +94,7 @@ def test_same_seed_same_actions_bit_identical(env_id):
         record = [obs.tobytes()]
         for a in actions:
             obs, reward, terminated, truncated, info = env.step(a)
-            record.append((obs.tobytes(), reward, terminated, truncated, sorted(info.items())))
+            record.append((obs.tobytes(), reward, terminated, truncated, _plain(info)))
             if terminated or truncated:
                 break
         runs.append(record)
@@ -120,7 +128,7 @@ def test_snapshot_restore_replays_identically(env_id):
         out = []
         for a in actions:
             obs, reward, terminated, truncated, info = env.step(a)
-            out.append((obs.tobytes(), reward, terminated, truncated, sorted(info.items())))
+            out.append((obs.tobytes(), reward, terminated, truncated, _plain(info)))
         return out
 
     first = play()

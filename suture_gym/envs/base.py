@@ -18,7 +18,9 @@ entered or exited off the plan; ``truncated`` with
 ``info["diverged"] = True`` when the simulation diverges (the observation is then the last finite one and
 every reward term 0); the time limit comes from registration (``TimeLimit``).
 
-``info`` at every step: ``is_success``, ``punctured``, ``tip_force`` (N), ``wound_gap`` (m, 0 without a
+``info`` at every step: ``is_success``, ``punctured``, ``tip_force`` (N), ``haptic_wrench`` (``(6,) float64``
+``[N, N m]``: the reaction the tissue and thread exert on the needle, about the grip point, at the step's last
+substep; a haptic device renders its opposite; zeros if not finite), ``wound_gap`` (m, 0 without a
 wound), ``diverged``, ``cost`` (tissue-force cost >= 0, for safe RL), ``tear``, ``out_of_workspace``, ``missed``,
 ``stitch`` and ``reward_<term>`` for each term of the task, with ``math.fsum`` of the terms equal to the reward
 exactly. ``reset`` adds ``params`` (the sampled episode parameters) and ``phase``.
@@ -345,6 +347,9 @@ class SutureEnv(gym.Env):
             "is_success": bool(outcome.success) if outcome is not None else False,
             "punctured": bool(o.punctured),
             "tip_force": float(o.tip_force) if math.isfinite(o.tip_force) else 0.0,
+            "haptic_wrench": (
+                o.haptic_wrench.copy() if np.all(np.isfinite(o.haptic_wrench)) else np.zeros(6)
+            ),
             "wound_gap": float(o.wound_gap) if math.isfinite(o.wound_gap) else 0.0,
             "diverged": bool(diverged),
             "cost": float(outcome.cost) if outcome is not None else 0.0,
