@@ -21,6 +21,7 @@ MODULES: tuple[str, ...] = (
     "suture_gym.measure.interaction",
     "suture_gym.measure.puncture",
     "suture_gym.measure.support",
+    "suture_gym.measure.insertion",
     "suture_gym.measure.collision",
     "suture_gym.measure.render",
     "suture_gym.measure.envs",

@@ -31,14 +31,20 @@ Detection (once per substep, after the prediction; :func:`coupling_detect`)
    ``tip_length`` of the point) against the tip's direction of travel in the previous substep reaches
    ``puncture_force``, the tip punctures: a new path opens whose first node and entry access point are the
    anchor; once the tip is through, both move to where the strand crosses the surface. Rigid faces (all
-   three vertices pinned: the base, clamps) are never punctured.
+   three vertices pinned: the base, clamps) are never punctured. With ``tip_contact_radius > 0`` the anchor
+   row spreads the tip's load over a surface patch in series with a local compliance
+   (:func:`~suture_gym.sim.coupling.paths.tip_patch`, :func:`tip_series_compliance`).
 4. Path growth (paper section 4.3): while the path is open and the tip moves on, with ``d`` the distance from
    the tip to the last path node: no node if ``d < l``, ``floor(d / h)`` evenly spaced nodes (the last at the
    tip) if ``d > h``, one at the tip otherwise. Path nodes are tet index + barycentric coordinates located
    in the deformed mesh, so they move with the tissue.
 5. Exit: once the tip has been inside and is outside again, the point where the strand crosses the surface
    becomes the exit access point and the path's last node; the path closes. No exit through a rigid face;
-   a needle whose front left the tissue without crossing its surface loses the open path.
+   a needle whose front left the tissue without crossing its surface loses the open path. With
+   ``exit_puncture_force > 0`` the tip heading out is first held by an *exit anchor* (the anchor row from the
+   inside, ROW_EXIT) until its force on it reaches that threshold; a tip that backs out through its own entry
+   then releases the open path (:func:`~suture_gym.sim.coupling.paths.tip_events`). While a path is open the
+   tip's advance is resisted by ``cutting_force`` (:func:`project_cutting`).
 6. Stopper knot (optional, :meth:`CouplingModel.build`'s ``knot_tail``): the thread carries a knot at strand
    coordinate ``knot_sigma``, too big to enter a hole. The oldest path's entry coordinate is bounded by it, so
    once the knot reaches that entry the entry's node-access row holds the knot's strand piece at the access

@@ -193,8 +193,8 @@ def contact_frames(
 ):
     """Unit contact normal of every contact row at detection, at its surface point (``row_tri``, ``row_bary``):
     the face normal of a rigid triangle (``tri_rigid``), the smooth normal (:func:`surface_normal`) of a
-    deforming one; turned inward for the rows from the inside (ROW_WALL, ROW_EXIT). A row whose normal is undefined (a collapsed neighbourhood)
-    is dropped (ROW_NONE). Writes ``row_normal`` (M, 3); updates ``row_kind``."""
+    deforming one; turned inward for the rows from the inside (ROW_WALL, ROW_EXIT). A row whose normal is
+    undefined (a collapsed neighbourhood) is dropped (ROW_NONE). Writes ``row_normal`` (M, 3); updates ``row_kind``."""
     for i in range(row_kind.shape[0]):
         kind = row_kind[i]
         if kind != ROW_TRIANGLE and kind != ROW_WALL and kind != ROW_ANCHOR and kind != ROW_EXIT:

@@ -132,8 +132,12 @@ class CouplingModel:
         surface = build_triangle_surface(tri, rest)
         tet_bvh = build_bvh(tets, rest)
         surface_vertex, inverse = np.unique(tri, return_inverse=True)
-        tri_area = 0.5 * np.linalg.norm(np.cross(rest[tri[:, 1]] - rest[tri[:, 0]], rest[tri[:, 2]] - rest[tri[:, 0]]), axis=1)
-        vertex_area = np.bincount(inverse.reshape(-1), weights=np.repeat(tri_area / 3.0, 3), minlength=surface_vertex.size)
+        tri_area = 0.5 * np.linalg.norm(
+            np.cross(rest[tri[:, 1]] - rest[tri[:, 0]], rest[tri[:, 2]] - rest[tri[:, 0]]), axis=1
+        )
+        vertex_area = np.bincount(
+            inverse.reshape(-1), weights=np.repeat(tri_area / 3.0, 3), minlength=surface_vertex.size
+        )
         patch_radius = 0.0
         compliance = np.zeros(tri.shape[0])
         if params.tip_contact_radius > 0.0:

@@ -14,7 +14,7 @@ from suture_gym.sim.collision import (
 )
 from suture_gym.sim.coupling.constraints import surface_normal
 from suture_gym.sim.coupling.model import CouplingModel, CouplingState, CouplingWork
-from suture_gym.sim.coupling.params import TIP_PATCH_CAPACITY, TINY_LENGTH
+from suture_gym.sim.coupling.params import TINY_LENGTH, TIP_PATCH_CAPACITY
 
 
 @njit(cache=True)
@@ -177,10 +177,10 @@ def release_path(state: CouplingState, k: int) -> None:
 
 def update_tip_anchor(model: CouplingModel, state: CouplingState, tissue_q, strand_q) -> None:
     """Keep, release or set the tip's anchor (module docstring, detection step 3) for the strand at ``strand_q``
-    (M, 3) m (the tip is node 0): while no path is open, the tip engages the surface point it first comes within the contact band of and
-    keeps it until it moves off the surface (its gap along the anchor normal exceeds the band) or slides
-    (:func:`coupling_finish`); with the tip-contact model on (``tip_contact_radius > 0``) the anchor gets its
-    contact patch (:func:`tip_patch`).
+    (M, 3) m (the tip is node 0): while no path is open, the tip engages the surface point it first comes
+    within the contact band of and keeps it until it moves off the surface (its gap along the anchor normal
+    exceeds the band) or slides (:func:`coupling_finish`); with the tip-contact model on
+    (``tip_contact_radius > 0``) the anchor gets its contact patch (:func:`tip_patch`).
 
     With an exit threshold (``exit_puncture_force > 0``), the tip inside an open path that heads out through a
     deformable face (its direction, from the needle node behind it, points out of the surface) and comes within
@@ -213,7 +213,7 @@ def update_tip_anchor(model: CouplingModel, state: CouplingState, tissue_q, stra
             state.tip_anchor_tri = int(state.strand_tri[0])
             state.tip_anchor_bary[:] = state.strand_bary[0]
             if params.tip_contact_radius > 0.0:
-                tip_patch(model, state, tissue_q)
+                tip_patch(model, state, tissue_q, tip)
         return
     k = state.path_count - 1
     tri = int(state.strand_tri[0])
@@ -237,13 +237,16 @@ def update_tip_anchor(model: CouplingModel, state: CouplingState, tissue_q, stra
             state.tip_anchor_inside = True
 
 
-def tip_patch(model: CouplingModel, state: CouplingState, tissue_q: np.ndarray) -> None:
+def tip_patch(model: CouplingModel, state: CouplingState, tissue_q: np.ndarray, tip: np.ndarray) -> None:
     """The tip's contact patch for its new anchor (``state.tip_anchor_tri``, ``tip_anchor_bary``): the surface
     vertices within ``model.tip_patch_radius`` of the anchor in the rest shape (the nearest
     :data:`TIP_PATCH_CAPACITY`), weighted by their lumped areas (a uniform pressure; weights sum to 1), or the
-    anchor triangle's vertices with its barycentrics where no vertex is that near; the offset that puts the
-    patch's weighted mean on the anchor at ``tissue_q`` (N, 3) m; and the anchor triangle's series compliance.
-    Writes the ``tip_patch_*`` fields of ``state``."""
+    anchor triangle's vertices with its barycentrics where no vertex is that near; the anchor triangle's series
+    compliance ``alpha``; and the offset that puts the patch's weighted mean on the anchor at ``tissue_q``
+    (N, 3) m. A tip anchored anew while it presses on the surface (it slid: the last tip force ``F`` > 0) keeps
+    its spring's deflection: the anchor is moved along the surface normal ``n`` there until the tip at ``tip``
+    (3,) m sits ``alpha F - eps`` below it, ``(tip - p) . n = eps - alpha F``, instead of jumping back to the
+    surface. Writes the ``tip_patch_*`` fields of ``state``."""
     tri = state.tip_anchor_tri
     corners = model.surface.tri_vertices[tri]
     rest = model.tissue_rest_q
@@ -262,8 +265,17 @@ def tip_patch(model: CouplingModel, state: CouplingState, tissue_q: np.ndarray) 
     state.tip_patch_vertex[:count] = vertices
     state.tip_patch_weight[:count] = weights
     state.tip_patch_weight[count:] = 0.0
-    state.tip_patch_offset[:] = state.tip_anchor_bary @ tissue_q[corners] - weights @ tissue_q[vertices]
-    state.tip_patch_compliance = float(model.tri_tip_compliance[tri])
+    anchor = state.tip_anchor_bary @ tissue_q[corners]
+    compliance = float(model.tri_tip_compliance[tri])
+    if state.tip_force > 0.0:
+        surface = model.surface
+        n = surface_normal(
+            tri, state.tip_anchor_bary, surface.tri_vertices, surface.vertex_tri_start, surface.vertex_tri_index,
+            tissue_q,
+        )  # fmt: skip
+        anchor = anchor + float((tip - anchor) @ n - model.params.resistance_eps + compliance * state.tip_force) * n
+    state.tip_patch_offset[:] = anchor - weights @ tissue_q[vertices]
+    state.tip_patch_compliance = compliance
 
 
 def tip_events(
