@@ -11,6 +11,7 @@ import pytest
 
 from suture_gym.measure.interaction import StitchController
 from suture_gym.sim.coupling import ROW_PATH, CouplingParams, project_cutting, tip_patch, tip_series_compliance
+from suture_gym.sim.coupling.compliance import diagonal
 from suture_gym.sim.model import Control, TissueMaterial
 from suture_gym.sim.needle import NeedleModel, VirtualCoupling, needle_point_velocity
 from suture_gym.sim.quat import quat_to_matrix
@@ -71,7 +72,8 @@ def _cut(advance, cap, tissue_inv_mass=0.0):
     project_cutting(
         (needle.node_count, needle.body_inv_mass, needle.body_inv_inertia, needle.node_pos_body, pos_prev,
          quat.copy()),
-        (np.array([tissue_inv_mass]), tissue_q.copy(), np.zeros((1, 3), np.int32)), dt, cut, pos, quat, tissue_q,
+        (diagonal(np.array([tissue_inv_mass])), tissue_q.copy(), np.zeros((1, 3), np.int32)), dt, cut, pos, quat,
+        tissue_q,
     )  # fmt: skip
     rotation = quat_to_matrix(quat)
     tip_moved = (pos + rotation @ needle.node_pos_body[0]) - (pos_prev + needle.node_pos_body[0])
