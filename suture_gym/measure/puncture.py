@@ -66,10 +66,17 @@ def pad_with_needle(material: TissueMaterial | None = None, coupling_params: Cou
     default needle upright over its centre, the tip ``eps`` above the top face pointing down, and a free 2 cm
     suture straight up from the swage; ``coupling_params`` default to a 1 N puncture force."""
     base = suturing_pad(material=material)
-    needle = NeedleModel.from_shape()
     params = coupling_params or CouplingParams(puncture_force=PAD_PUNCTURE_FORCE)
     sx, sy, sz = base.settings["size_m"]
-    center = np.array([0.5 * sx, 0.5 * sy + needle.shape.curvature_radius, sz + params.resistance_eps])
+    radius = NeedleModel.from_shape().shape.curvature_radius
+    return needle_over(base, np.array([0.5 * sx, 0.5 * sy + radius, sz + params.resistance_eps]), params)
+
+
+def needle_over(base: Scene, center: np.ndarray, params: CouplingParams) -> Scene:
+    """``base`` with the default needle upright on the circle of centre ``center`` (3,) m in the wound plane
+    (:data:`WOUND_ARC_AXIS`), its tip straight below the centre pointing down, and a free 2 cm suture straight up
+    from the swage, coupled with ``params``."""
+    needle = NeedleModel.from_shape()
     return add_strands(
         base,
         needle_circle_pose(needle, center, WOUND_ARC_AXIS, WOUND_ARC_U, wound_tip_angle(needle)),
@@ -132,14 +139,7 @@ def _push(force: float, params: CouplingParams, youngs: float, dt: float = SWEEP
     base = two_bar_wound(
         bar_size=(0.03, 0.015, 0.015), cells=(6, 3, 3), gap=SWEEP_GAP, material=TissueMaterial(youngs_modulus=youngs)
     )
-    needle = NeedleModel.from_shape()
-    scene = add_strands(
-        base,
-        needle_circle_pose(needle, SWEEP_ARC_CENTER, WOUND_ARC_AXIS, WOUND_ARC_U, wound_tip_angle(needle)),
-        suture_params=SutureParams(length=0.02, node_count=21),
-        suture_direction=(0.0, 0.0, 1.0),
-        coupling_params=params,
-    )
+    scene = needle_over(base, SWEEP_ARC_CENTER, params)
     return push_tip(scene, force, dt, SWEEP_RAMP, SWEEP_HOLD)
 
 

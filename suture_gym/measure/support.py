@@ -15,22 +15,14 @@ from dataclasses import replace
 
 import numpy as np
 
-from suture_gym.measure.puncture import push_tip
+from suture_gym.measure.puncture import needle_over, push_tip
 from suture_gym.measure.registry import CheckResult, check
 from suture_gym.measure.tissue_stiff import STIFF_ENV_SWEEPS, STIFF_INTEGRATOR, _env_rate
 from suture_gym.sim.coupling import CouplingParams
 from suture_gym.sim.mesh import signed_volumes
 from suture_gym.sim.model import TissueMaterial
 from suture_gym.sim.needle import NeedleModel
-from suture_gym.sim.rod import SutureParams
-from suture_gym.sim.scenes import (
-    WOUND_ARC_AXIS,
-    WOUND_ARC_U,
-    add_strands,
-    needle_circle_pose,
-    suturing_pad,
-    wound_tip_angle,
-)
+from suture_gym.sim.scenes import suturing_pad
 from suture_gym.sim.solver import Solver
 from suture_gym.sim.tissue import project_supports
 
@@ -52,17 +44,10 @@ def _crushed_pad(supports: bool) -> dict:
     if not supports:
         tissue = replace(pad.model.tissue, support_normal=np.zeros((0, 3)), support_offset=np.zeros(0))
         pad.model = replace(pad.model, tissue=tissue)
-    needle = NeedleModel.from_shape()
     params = CouplingParams(puncture_force=10.0 * BASE_PUSH_FORCE, tear_force=10.0 * BASE_PUSH_FORCE)
     sx, sy, sz = BASE_PAD_SIZE
-    center = np.array([0.5 * sx, 0.5 * sy + needle.shape.curvature_radius, sz + params.resistance_eps])
-    scene = add_strands(
-        pad,
-        needle_circle_pose(needle, center, WOUND_ARC_AXIS, WOUND_ARC_U, wound_tip_angle(needle)),
-        suture_params=SutureParams(length=0.02, node_count=21),
-        suture_direction=(0.0, 0.0, 1.0),
-        coupling_params=params,
-    )
+    radius = NeedleModel.from_shape().shape.curvature_radius
+    scene = needle_over(pad, np.array([0.5 * sx, 0.5 * sy + radius, sz + params.resistance_eps]), params)
     solver = Solver(iterations=STIFF_ENV_SWEEPS, tissue_integrator=STIFF_INTEGRATOR)
     record = push_tip(scene, BASE_PUSH_FORCE, rate["dt_s"], BASE_RAMP, BASE_HOLD, solver=solver)
     tissue, q = scene.model.tissue, scene.state.tissue.particle_q
