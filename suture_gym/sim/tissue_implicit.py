@@ -513,8 +513,11 @@ class ImplicitTissue:
         self.external = np.zeros((tissue.particle_count, 3))
         #: Whether the coupling rows moved the tissue since the substep's last elastic solve.
         self.rows_moved = False
-        #: Columns of ``A0^-1`` (over the free dofs) of each particle's three dofs, computed on first use.
-        self._columns: dict[int, np.ndarray] = {}
+        #: Columns of ``A0^-1`` (over the free dofs) of particles' three dofs, solved for on first use: particle
+        #: ``p``'s are columns ``3 c .. 3 c + 2`` of the store, ``c = _column_of[p]`` (-1: not yet).
+        self._column_store = np.zeros((self.free_index.size, 96))
+        self._column_of = np.full(tissue.particle_count, -1)
+        self._column_count = 0
         self._free_position = np.full(3 * tissue.particle_count, -1)
         self._free_position[self.free_index] = np.arange(self.free_index.size)
         self._slot = np.full(tissue.particle_count, -1, np.int32)
@@ -550,32 +553,37 @@ class ImplicitTissue:
             return self.compliance
         self._slot[:] = -1
         self._slot[vertices] = np.arange(vertices.size, dtype=np.int32)
-        columns = self._particle_columns(vertices)  # (n_free, 3m)
+        self._solve_columns(vertices)
         dofs = (3 * vertices[:, None] + np.arange(3)).ravel()
         position = self._free_position[dofs]
+        columns = (3 * self._column_of[vertices][:, None] + np.arange(3)).ravel()
         matrix = np.zeros((dofs.size, dofs.size))
         free = position >= 0
-        matrix[free] = columns[position[free]] * self.inv_h2
+        matrix[free] = self._column_store[np.ix_(position[free], columns)] * self.inv_h2
         self.compliance = (self.tissue.particle_inv_mass, self._slot, vertices, matrix, self._impulse)
         return self.compliance
 
-    def _particle_columns(self, particles: np.ndarray) -> np.ndarray:
-        """``(n_free, 3 len(particles))``: the columns of ``A0^-1`` of each particle's x, y, z dofs (zero for a
-        held dof)."""
-        missing = [int(p) for p in particles if int(p) not in self._columns]
-        if missing:
-            dofs = (3 * np.asarray(missing)[:, None] + np.arange(3)).ravel()
-            position = self._free_position[dofs]
-            rhs = np.zeros((self.free_index.size, dofs.size))
-            free = np.flatnonzero(position >= 0)
-            rhs[position[free], free] = 1.0
-            solved = self.factor.solve(rhs)
-            solved[:, position < 0] = 0.0
-            for k, p in enumerate(missing):
-                self._columns[p] = solved[:, 3 * k : 3 * k + 3].copy()
-        if particles.size == 0:
-            return np.zeros((self.free_index.size, 0))
-        return np.concatenate([self._columns[int(p)] for p in particles], axis=1)
+    def _solve_columns(self, particles: np.ndarray) -> None:
+        """Make sure the columns of ``A0^-1`` of each particle's x, y, z dofs (zero for a held dof) are in the
+        column store (one batched solve for the missing ones; the store doubles when full)."""
+        missing = particles[self._column_of[particles] < 0]
+        if missing.size == 0:
+            return
+        start = self._column_count
+        if 3 * (start + missing.size) > self._column_store.shape[1]:
+            grown = np.zeros((self.free_index.size, max(2 * self._column_store.shape[1], 3 * (start + missing.size))))
+            grown[:, : 3 * start] = self._column_store[:, : 3 * start]
+            self._column_store = grown
+        dofs = (3 * missing[:, None] + np.arange(3)).ravel()
+        position = self._free_position[dofs]
+        rhs = np.zeros((self.free_index.size, dofs.size))
+        free = np.flatnonzero(position >= 0)
+        rhs[position[free], free] = 1.0
+        solved = self.factor.solve(rhs)
+        solved[:, position < 0] = 0.0
+        self._column_store[:, 3 * start : 3 * (start + missing.size)] = solved
+        self._column_of[missing] = np.arange(start, start + missing.size)
+        self._column_count = start + missing.size
 
     def propagate_rows(self, q_before: np.ndarray, q: np.ndarray) -> None:
         """Spread the coupling rows' impulses of this sweep over the whole tissue.
