@@ -64,9 +64,10 @@ so a concentrated load also dents the tissue more at large ``dt`` (a 1 N tip on 
 
 Implicit tissue (``tissue_integrator="quasi_newton"`` or ``"vbd"``, :mod:`suture_gym.sim.tissue_implicit`): the
 tissue's phase-3 work is an implicit-Euler solve of its elastic energy in place of the tet projection, stable and
-true to its material from 1 kPa to 1 MPa at 1 ms (docs/tissue_integrator.md); the coupling rows then use the
-tissue's substep compliance as its inverse mass and their corrections are spread through the tissue by one more
-solve. Coupled scenes need ``iterations=2`` so the elastic solve and the rows alternate.
+true to its material from 1 kPa to 1 MPa at 1 ms (docs/tissue_integrator.md); the coupling rows then solve
+against the tissue's exact substep compliance among the vertices they touch (set up after detection,
+:mod:`~suture_gym.sim.coupling.compliance`) and their impulses are spread through the tissue by one more solve.
+Coupled scenes need ``iterations=2`` so the elastic solve and the rows alternate.
 
 Robustness: every loop is bounded (fixed sweeps and rod iterations, path buffers of fixed size that flag
 overflow instead of growing), and divergence is reported in ``state.diverged``, never raised. A state is
