@@ -318,3 +318,13 @@ def test_needle_load_reaches_the_implicit_tissue_and_its_base():
     # the rows' impulses reach the tissue whole (the rows solve against its compliance among their vertices)
     assert support == pytest.approx(weight + state.coupling.tip_force, rel=0.01)
     assert state.coupling.tip_force == pytest.approx(1.0, rel=0.02)
+
+
+def test_a_state_can_change_integrator_between_steps_and_its_rows_follow():
+    """The coupling rows' tissue side is chosen every substep: after implicit steps, an XPBD step of the same
+    state uses the particles' inverse masses again (not the implicit compliance block of the last substep)."""
+    scene, _ = _press(1.0e5, 1.0, Solver(tissue_integrator="quasi_newton", iterations=2), seconds=0.05)
+    work = scene.state.work
+    assert work.compliance is not work.diagonal_compliance
+    Solver().step(scene.model, scene.state, Control(), 1e-3)
+    assert work.compliance is work.diagonal_compliance

@@ -460,8 +460,10 @@ class Work:
         rod_solves: direct solves of the suture in the last substep's last sweep (iterations whose residual
             was above the solver's ``rod_tolerance``), a convergence reading.
         compliance: the tissue's side of the coupling rows this substep
-            (:mod:`~suture_gym.sim.coupling.compliance`): the particles' inverse masses (XPBD) or the implicit
+            (:mod:`~suture_gym.sim.coupling.compliance`): :attr:`diagonal_compliance` (XPBD) or the implicit
             integrator's compliance among the rows' vertices (set by the solver each substep); None without
+            tissue.
+        diagonal_compliance: the particles' inverse masses as a compliance tuple, built once; None without
             tissue.
     """
 
@@ -470,7 +472,8 @@ class Work:
         self.rod_work = None if model.suture is None else RodWork(model.suture)
         self.coupling_work = None if model.coupling is None else CouplingWork(model.coupling)
         self.rod_solves = 0
-        self.compliance = None if model.tissue is None else diagonal(model.tissue.particle_inv_mass)
+        self.diagonal_compliance = None if model.tissue is None else diagonal(model.tissue.particle_inv_mass)
+        self.compliance = self.diagonal_compliance
         self._tissue_integrator: ImplicitTissue | None = None
 
     def tissue_integrator(self, kind: str, dt: float) -> ImplicitTissue:

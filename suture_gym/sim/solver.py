@@ -277,18 +277,7 @@ class Solver:
             state.diverged = True
             return
         self._detect(model, state, dt)
-        if self._implicit(model):
-            integrator = state.work.tissue_integrator(self.tissue_integrator, dt)
-            integrator.begin(state.tissue.particle_q, model.gravity)
-            if model.coupling is not None:
-                state.work.compliance = integrator.begin_rows(self._row_vertices(model, state))
-        if model.coupling is not None and model.suture is not None:
-            work = state.work.coupling_work
-            embedded_inv_mass(
-                model.coupling.needle_node_count, work.node_rows, work.access_rows, work.access_count,
-                model.coupling.surface.tri_vertices, state.work.compliance, model.suture.node_inv_mass,
-                work.suture_inv_mass,
-            )  # fmt: skip
+        self._begin_rows(model, state, dt)
         clock.lap("detect")
         for sweep in range(self.iterations):
             self._project(model, state, dt, first_sweep=sweep == 0, last_sweep=sweep == self.iterations - 1)
@@ -427,6 +416,27 @@ class Solver:
     def _implicit(self, model: Model) -> bool:
         """Whether the tissue is stepped by an implicit integrator."""
         return model.tissue is not None and self.tissue_integrator != "xpbd"
+
+    def _begin_rows(self, model: Model, state: State, dt: float) -> None:
+        """After detection: start the implicit integrator's substep, choose the tissue side the coupling rows
+        see this substep (``state.work.compliance``: the implicit compliance among the rows' vertices, else the
+        particles' inverse masses; chosen every substep, so a state may change integrator between steps) and
+        the suture nodes' embedded inverse masses."""
+        work = state.work
+        if self._implicit(model):
+            integrator = work.tissue_integrator(self.tissue_integrator, dt)
+            integrator.begin(state.tissue.particle_q, model.gravity)
+            if model.coupling is not None:
+                work.compliance = integrator.begin_rows(self._row_vertices(model, state))
+        elif model.tissue is not None:
+            work.compliance = work.diagonal_compliance
+        if model.coupling is not None and model.suture is not None:
+            rows = work.coupling_work
+            embedded_inv_mass(
+                model.coupling.needle_node_count, rows.node_rows, rows.access_rows, rows.access_count,
+                model.coupling.surface.tri_vertices, work.compliance, model.suture.node_inv_mass,
+                rows.suture_inv_mass,
+            )  # fmt: skip
 
     @staticmethod
     def _row_vertices(model: Model, state: State) -> np.ndarray:
