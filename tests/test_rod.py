@@ -176,9 +176,11 @@ def test_guarded_inverse_drops_a_null_row():
     np.testing.assert_array_equal(out[3], 0.0)
 
 
-def test_assembled_system_matches_dense_finite_difference_jacobians():
+@pytest.mark.parametrize("anisotropic", [False, True])
+def test_assembled_system_matches_dense_finite_difference_jacobians(anisotropic):
     """``diag/lower`` = ``J W J^T + alpha~`` and ``rhs = -C - alpha~ lambda + J h``, with J from finite
-    differences of the constraint functions (attachment, stretch-shear, bend-twist, contacts)."""
+    differences of the constraint functions (attachment, stretch-shear, bend-twist, contacts); with
+    ``anisotropic`` the nodes' inverse masses are ``w I + a t t^T`` matrices (nodes held across a path)."""
     n, dt = 6, 1e-3
     model = RodModel.from_params(SutureParams(node_count=n, length=0.01, inextensible=False))
     needle = NeedleModel.from_shape()
@@ -196,9 +198,17 @@ def test_assembled_system_matches_dense_finite_difference_jacobians():
     normals = RNG.normal(size=(n, 3))
     work.contact_normal[:] = normals / np.linalg.norm(normals, axis=1, keepdims=True)
     align_frames(state.node_pos, model.seg_inv_inertia, state.seg_quat)
+    node_w = model.node_inv_mass.copy()
+    axis_w = np.zeros(n)
+    axis = np.zeros((n, 3))
+    if anisotropic:  # heavy across a random axis, light along it, as embedded_inv_mass makes them
+        node_w[1:] *= 1e-3
+        axis_w[1:] = model.node_inv_mass[1:] - node_w[1:]
+        axis[1:] = RNG.normal(size=(n - 1, 3))
+        axis[1:] /= np.linalg.norm(axis[1:], axis=1, keepdims=True)
     rod = (
-        model.node_inv_mass, model.seg_rest_length, model.seg_inv_inertia, model.seg_stretch_compliance,
-        model.bend_compliance, work.contact_obstacle_w,
+        node_w, model.seg_rest_length, model.seg_inv_inertia, model.seg_stretch_compliance,
+        model.bend_compliance, work.contact_obstacle_w, axis_w, axis,
     )  # fmt: skip
     needle_group = (True, needle.body_inv_mass, needle.body_inv_inertia, needle.swage_pos_body)
     assemble_rod_system(
@@ -231,7 +241,7 @@ def test_assembled_system_matches_dense_finite_difference_jacobians():
         jac[:, c] = (constraints(e) - constraints(-e)) / (2 * h)
     winv = np.zeros((ndof, ndof))
     for i in range(n):
-        winv[3 * i : 3 * i + 3, 3 * i : 3 * i + 3] = np.eye(3) * model.node_inv_mass[i]
+        winv[3 * i : 3 * i + 3, 3 * i : 3 * i + 3] = np.eye(3) * node_w[i] + axis_w[i] * np.outer(axis[i], axis[i])
     for j in range(n - 1):
         o = 3 * n + 3 * j
         winv[o : o + 3, o : o + 3] = work.seg_winv[j]
@@ -309,6 +319,33 @@ def test_pulled_rod_stays_inextensible_and_still():
     assert np.abs(segment_strain(model, state)).max() < 1e-9
     assert np.abs(state.node_vel).max() < 1e-8
     assert 1 <= full.work.rod_solves <= 2  # at rest one or two direct solves converge
+
+
+@pytest.mark.parametrize("free_axis", [(1.0, 0.0, 0.0), (0.0, 1.0, 0.0)])
+def test_anisotropic_node_takes_the_correction_along_its_free_axis(free_axis):
+    """A 2-node inextensible rod along x stretched by 1e-4 m: node 1 is 1e4 times heavier than node 0 except
+    along ``free_axis``, where it has node 0's mass. Along x it shares the correction equally with node 0;
+    across (free axis y) node 0 takes it all. The momentum the step exchanges is zero either way."""
+    model = RodModel.from_params(SutureParams(node_count=2, length=0.01))
+    state = RodState.straight(model, [0.0, 0.0, 0.0], [1.0, 0.0, 0.0])
+    state.node_pos[1, 0] += 1e-4
+    work = RodWork(model)
+    work.begin(state)
+    w = model.node_inv_mass[0]
+    node_w = np.array([w, w * 1e-4])
+    axis_inv_mass = np.array([0.0, w - w * 1e-4])
+    axis = np.array([[0.0, 0.0, 0.0], free_axis])
+    start = state.node_pos.copy()
+    for _ in range(3):
+        rod_solve_iteration(model, state, work, 1e-3, node_inv_mass=node_w, axis_inv_mass=axis_inv_mass, axis=axis)
+    moved = state.node_pos - start
+    assert np.linalg.norm(state.node_pos[1] - state.node_pos[0]) == pytest.approx(0.01, abs=1e-12)
+    share = 0.5 if free_axis[0] else 1.0 / (1.0 + 1e-4)
+    assert moved[0, 0] == pytest.approx(1e-4 * share, rel=1e-6)
+    assert moved[1, 0] == pytest.approx(-1e-4 * (1.0 - share), rel=1e-4, abs=1e-15)
+    w1 = np.eye(3) * node_w[1] + axis_inv_mass[1] * np.outer(axis[1], axis[1])
+    impulse = moved[0] / w + np.linalg.solve(w1, moved[1])
+    np.testing.assert_allclose(impulse, 0.0, atol=1e-9 * np.abs(moved[0] / w).max())
 
 
 def test_compliant_stretch_matches_hooke():

@@ -263,6 +263,8 @@ class RodWork:
         self.contact_gap = np.full(n, np.inf)
         self.contact_normal = np.zeros((n, 3))
         self.contact_obstacle_w = np.zeros(n)  # static obstacles only: they take no share of a contact row
+        self.isotropic_axis_w = np.zeros(n)  # nodes without an axis: W_i = w_i I
+        self.isotropic_axis = np.zeros((n, 3))
         self.contact_active = np.zeros(n, dtype=np.bool_)
         self.contact_push = np.zeros((n, 3))
         self.att_r = np.zeros(3)
@@ -460,14 +462,19 @@ def rod_solve_iteration(
     tolerance: float = 0.0,
     node_inv_mass: np.ndarray | None = None,
     contact_w: np.ndarray | None = None,
+    axis_inv_mass: np.ndarray | None = None,
+    axis: np.ndarray | None = None,
 ) -> float:
     """One direct-solver iteration (:func:`~suture_gym.sim.rod_solver.rod_iteration_kernel`) over all rod
     constraints, the contact rows in ``work.contact_gap`` / ``work.contact_normal`` and (if a needle is given)
     the two-way swage attachment.
 
     Call ``work.begin(state)`` once per substep before the first iteration. ``node_inv_mass`` (N,) 1/kg replaces
-    the model's node inverse masses for this iteration (the coupling's embedded masses) and ``contact_w`` (N,)
-    1/kg gives the obstacle's share of each contact row (default ``work.contact_obstacle_w``: static obstacles).
+    the model's node inverse masses for this iteration (the coupling's embedded masses); with ``axis_inv_mass``
+    (N,) 1/kg and unit ``axis`` (N, 3) node ``i``'s inverse mass is the matrix ``node_inv_mass[i] I +
+    axis_inv_mass[i] axis[i] axis[i]^T`` (a node embedded in the tissue across a path but free along it;
+    default: isotropic). ``contact_w`` (N,) 1/kg gives the obstacle's share of each contact row (default
+    ``work.contact_obstacle_w``: static obstacles).
     Returns the largest residual before this iteration's solve (dimensionless, see
     :func:`~suture_gym.sim.rod_solver.assemble_rod_system`); if it is <= ``tolerance`` the solve is skipped and
     nothing moves except the frame alignment.
@@ -482,6 +489,8 @@ def rod_solve_iteration(
         model.node_inv_mass if node_inv_mass is None else node_inv_mass, model.seg_rest_length,
         model.seg_inv_inertia, model.seg_stretch_compliance, model.bend_compliance,
         work.contact_obstacle_w if contact_w is None else contact_w,
+        work.isotropic_axis_w if axis_inv_mass is None else axis_inv_mass,
+        work.isotropic_axis if axis is None else axis,
     )  # fmt: skip
     return rod_iteration_kernel(
         rod, needle, work.start, work.frames, work.contacts, work.system, work.lam, state.node_pos, state.seg_quat,

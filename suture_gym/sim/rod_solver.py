@@ -5,7 +5,10 @@ The rod's module docstring describes the model and the solver; :func:`rod_iterat
 Kernels take their arrays in groups (tuples built once by :class:`~suture_gym.sim.rod.RodWork`), named as there:
 
 * ``rod``: ``(node_inv_mass (N,) 1/kg, seg_rest_length (N-1,) m, seg_inv_inertia (N-1, 3) 1/(kg m^2),
-  seg_stretch_compliance (N-1, 3), bend_compliance (N-2, 3), contact_w (N,) 1/kg)``;
+  seg_stretch_compliance (N-1, 3), bend_compliance (N-2, 3), contact_w (N,) 1/kg, axis_inv_mass (N,) 1/kg,
+  axis (N, 3))``: node ``i``'s inverse mass is the matrix ``W_i = w_i I + a_i t_i t_i^T`` (``w_i``
+  ``node_inv_mass``, ``a_i`` ``axis_inv_mass``, unit ``t_i`` ``axis``; ``a_i = 0`` for an isotropic node,
+  see :func:`inv_mass_times`);
 * ``needle``: ``(has_needle, needle_inv_mass 1/kg, needle_inv_inertia_body (3, 3), swage_body (3,) m)``;
 * ``start``: ``RodWork.start``, ``(seg_quat_start (N-1, 4), seg_tension_prev (N-1,) kg m^2)``;
 * ``frames``: ``RodWork.frames``, ``(seg_rot, seg_s, seg_winv (N-1, 3, 3), bend_b (N-2, 3, 3), seg_h (N-1, 3),
@@ -107,6 +110,27 @@ def _skew_into(x, y, z, out):
     out[2, 0] = -y
     out[2, 1] = x
     out[2, 2] = 0.0
+
+
+@njit(cache=True)
+def inv_mass_times(rod, i, v, out):
+    """``out[:] = W_i v`` (3,): node ``i``'s inverse mass matrix ``w_i I + a_i t_i t_i^T`` (``rod`` group, module
+    docstring) times ``v`` (3,). With ``a_i = 0`` this is ``w_i v`` to the bit."""
+    w, a, t = rod[0][i], rod[6][i], rod[7][i]
+    at = a * (t[0] * v[0] + t[1] * v[1] + t[2] * v[2])
+    for k in range(3):
+        out[k] = w * v[k] + at * t[k]
+
+
+@njit(cache=True)
+def _add_axis_inv_mass(rod, i, scale, out):
+    """``out += scale * a_i t_i t_i^T`` (3, 3): the anisotropic part of node ``i``'s inverse mass."""
+    a, t = rod[6][i], rod[7][i]
+    if a == 0.0:
+        return
+    for k in range(3):
+        for m in range(3):
+            out[k, m] += scale * a * t[k] * t[m]
 
 
 @njit(cache=True)
@@ -439,6 +463,7 @@ def _attachment_block(node_pos, rod, needle, frames, system, needle_pos, needle_
             diag[0, i, i] += node_inv_mass[0] + needle_inv_mass
             rhs[0, i] = -(node_pos[0, i] - needle_pos[i] - att_r[i])
             residual = max(residual, abs(rhs[0, i]) / seg_rest_length[0])
+        _add_axis_inv_mass(rod, 0, 1.0, diag[0, :3, :3])
     else:
         for i in range(3):
             diag[0, i, i] = 1.0
@@ -481,6 +506,8 @@ def _segment_blocks(node_pos, seg_quat, rod, has_needle, frames, system, lam, dt
                 hterm += s[i, k] * seg_h[j, k]
             rhs[b, i] = val + hterm
             residual = max(residual, abs(val))
+        _add_axis_inv_mass(rod, j, 1.0 / (l * l), d_ss)
+        _add_axis_inv_mass(rod, j + 1, 1.0 / (l * l), d_ss)
         if j < nseg - 1:
             residual = _bend_rows(j, seg_quat, bend_compliance, frames, diag, rhs, lam, inv_dt2, tmp, residual)
         else:
@@ -491,10 +518,12 @@ def _segment_blocks(node_pos, seg_quat, rod, has_needle, frames, system, lam, dt
             if has_needle:
                 for i in range(3):
                     lower[1, i, i] = -node_inv_mass[0] / l
+                _add_axis_inv_mass(rod, 0, -1.0 / l, lower[1, :3, :3])
         else:
             lp = seg_rest_length[j - 1]
             for i in range(3):
                 lower[b, i, i] = -node_inv_mass[j] / (l * lp)
+            _add_axis_inv_mass(rod, j, -1.0 / (l * lp), lower[b, :3, :3])
             bp = bend_b[j - 1]
             _abt_acc(tmp, bp, 1.0, lower[b, :3, 3:6])
             if j < nseg - 1:
@@ -541,6 +570,7 @@ def _contact_rows(rod, has_needle, contacts, system, lam, residual):
     diag, lower, _, rhs = system[:4]
     n = node_inv_mass.shape[0]
     nseg = n - 1
+    wn = np.empty(3)
     for i in range(n):
         w = node_inv_mass[i]
         gap = contact_gap[i]
@@ -550,21 +580,23 @@ def _contact_rows(rod, has_needle, contacts, system, lam, residual):
             diag[i, 6, 6] = 1.0
             continue
         nrm = contact_normal[i]
-        diag[i, 6, 6] = w
+        inv_mass_times(rod, i, nrm, wn)  # W_i n
+        tn = dot3(rod[7][i], nrm)
+        diag[i, 6, 6] = w + rod[6][i] * tn * tn  # n^T W_i n
         rhs[i, 6] = -gap
         scale = seg_rest_length[i - 1] if i >= 1 else seg_rest_length[0]
         residual = max(residual, abs(gap) / scale)
         if i >= 1:  # stretch-shear of segment i-1 (same block): dC_ss/dx_i = I / l_{i-1}
             for k in range(3):
-                diag[i, 6, k] = w * nrm[k] / seg_rest_length[i - 1]
+                diag[i, 6, k] = wn[k] / seg_rest_length[i - 1]
                 diag[i, k, 6] = diag[i, 6, k]
         elif has_needle:  # attachment: dC_att/dx_0 = I
             for k in range(3):
-                diag[0, 6, k] = w * nrm[k]
+                diag[0, 6, k] = wn[k]
                 diag[0, k, 6] = diag[0, 6, k]
         if i < nseg:  # stretch-shear of segment i (next block): dC_ss/dx_i = -I / l_i
             for k in range(3):
-                lower[i + 1, k, 6] = -w * nrm[k] / seg_rest_length[i]
+                lower[i + 1, k, 6] = -wn[k] / seg_rest_length[i]
     return residual
 
 
@@ -619,20 +651,25 @@ def apply_rod_solution(rod, needle, frames, contacts, z, lam, node_pos, seg_quat
     n = node_pos.shape[0]
     nseg = n - 1
     lam += z
+    impulse = np.empty(3)
+    step = np.empty(3)
     for i in range(n):
-        w = node_inv_mass[i]
-        if w == 0.0:
+        if node_inv_mass[i] == 0.0:
             continue
         for k in range(3):
-            dx = z[i, 6] * contact_normal[i, k]
-            contact_push[i, k] += w * dx
+            impulse[k] = z[i, 6] * contact_normal[i, k]
+        inv_mass_times(rod, i, impulse, step)
+        for k in range(3):
+            contact_push[i, k] += step[k]
             if i == 0 and has_needle:
-                dx += z[0, k]
+                impulse[k] += z[0, k]
             if i >= 1:
-                dx += z[i, k] / seg_rest_length[i - 1]
+                impulse[k] += z[i, k] / seg_rest_length[i - 1]
             if i < nseg:
-                dx -= z[i + 1, k] / seg_rest_length[i]
-            node_pos[i, k] += w * dx
+                impulse[k] -= z[i + 1, k] / seg_rest_length[i]
+        inv_mass_times(rod, i, impulse, step)
+        for k in range(3):
+            node_pos[i, k] += step[k]
     t = np.empty((nseg, 3))
     _frame_torque(z, seg_s, bend_b, t)
     dtheta = np.empty(3)

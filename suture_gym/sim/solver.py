@@ -434,8 +434,7 @@ class Solver:
             rows = work.coupling_work
             embedded_inv_mass(
                 model.coupling.needle_node_count, rows.node_rows, rows.access_rows, rows.access_count,
-                model.coupling.surface.tri_vertices, work.compliance, model.suture.node_inv_mass,
-                rows.suture_inv_mass,
+                model.coupling.surface.tri_vertices, work.compliance, model.suture.node_inv_mass, rows.suture_mass,
             )  # fmt: skip
 
     @staticmethod
@@ -535,7 +534,7 @@ class Solver:
                 work.row_tissue,
                 work.row_weight,
                 work.row_tangent,
-                work.suture_inv_mass,
+                work.suture_mass,
                 compliance,
                 coupling.params.tear_force * dt * dt,
                 work.row_lambda,
@@ -545,7 +544,7 @@ class Solver:
         project_access_rows(
             work.access_rows, work.access_count,
             (coupling.needle_node_count, needle.body_inv_mass, needle.body_inv_inertia, needle.node_pos_body),
-            work.suture_inv_mass, compliance, tri_vertices, coupling.params.tear_force * dt * dt,
+            work.suture_mass, compliance, tri_vertices, coupling.params.tear_force * dt * dt,
             work.access_lambda, needle_state.body_pos, needle_state.body_quat, suture_q, tissue_q,
         )  # fmt: skip
 
@@ -565,7 +564,7 @@ class Solver:
         """
         suture, rod_state, work = model.suture, state.suture, state.work.rod_work
         coupling, cwork = model.coupling, state.work.coupling_work
-        inv_mass = None if coupling is None else cwork.suture_inv_mass
+        inv_mass, axis_inv_mass, axis = (None, None, None) if coupling is None else cwork.suture_mass
         contact_w = None if coupling is None else cwork.suture_contact_w
         tissue_w = None if coupling is None else state.work.compliance
         work.lam[:] = 0.0
@@ -583,8 +582,9 @@ class Solver:
                     rod_state.node_pos, work.contact_gap, work.contact_normal, cwork.suture_contact_w,
                 )  # fmt: skip
             residual = rod_solve_iteration(
-                suture, rod_state, work, dt, model.needle, state.needle, self.rod_tolerance, inv_mass, contact_w
-            )
+                suture, rod_state, work, dt, model.needle, state.needle, self.rod_tolerance, inv_mass, contact_w,
+                axis_inv_mass, axis,
+            )  # fmt: skip
             if residual <= self.rod_tolerance:
                 break
             state.work.rod_solves += 1

@@ -78,8 +78,9 @@ Projection (called by :class:`~suture_gym.sim.solver.Solver`)
   a plain Gauss-Seidel coupling would move only the thread: the rod pulls a taut thread straight across the
   path's bends, the node-path projection puts the node back, and the tissue never feels the tension. Hence
   suture nodes held on a path or passing an access point carry the inertia of the tissue point they are
-  embedded in (:func:`embedded_inv_mass`), in their Gauss-Seidel node-path rows
-  (:func:`project_suture_path_rows`) and in the rod's solve, and they slide freely along the path.
+  embedded in across the path and their own along it (:func:`embedded_inv_mass`), in their Gauss-Seidel
+  node-path rows (:func:`project_suture_path_rows`) and in the rod's solve, so they slide freely along the
+  path.
 * Suture contact rows are one-sided contact rows inside the rod's direct solve, made two-way with the
   tissue: :func:`suture_contact_rows` gives each row the triangle's share of its inverse mass, which
   :func:`~suture_gym.sim.rod_solver.rod_iteration_kernel` adds to the row, and :func:`apply_contact_reaction` moves

@@ -359,8 +359,9 @@ class CouplingWork:
             piece through the access point (ends ``a = w0 x0 + w1 x1``, ``b = w2 x2 + w3 x3``) and
             access_weight: ``(2K, 4)`` those weights; access_rest: ``(2K,)`` rest length of the piece, m;
             access_tri: ``(2K,) int32``; access_bary: ``(2K, 3)``; access_lambda: ``(2K,)``.
-        suture_inv_mass: ``(Ns,)`` inverse masses of the suture nodes used by the projections this substep,
-            1/kg (:func:`embedded_inv_mass`).
+        suture_inv_mass, suture_axis_inv_mass: ``(Ns,)`` 1/kg, and suture_axis: ``(Ns, 3)`` unit: the inverse
+            masses ``W_j = w_j I + a_j t_j t_j^T`` of the suture nodes used by the projections this substep
+            (:func:`embedded_inv_mass`), grouped as suture_mass ``(w, a, t)``.
         suture_contact_w: ``(Ns,)`` generalised inverse mass (1/kg) of the tissue point of each suture node's
             contact row in the rod's solve.
         node_rows: the tuple ``(row_kind, row_tri, row_tissue, row_weight, row_tangent)`` and access_rows:
@@ -406,6 +407,9 @@ class CouplingWork:
         self.access_bary = np.zeros((2 * k, 3))
         self.access_lambda = np.zeros(2 * k)
         self.suture_inv_mass = np.zeros(model.suture_node_count)
+        self.suture_axis_inv_mass = np.zeros(model.suture_node_count)
+        self.suture_axis = np.zeros((model.suture_node_count, 3))
+        self.suture_mass = (self.suture_inv_mass, self.suture_axis_inv_mass, self.suture_axis)
         self.node_rows = (self.row_kind, self.row_tri, self.row_tissue, self.row_weight, self.row_tangent)
         self.access_rows = (self.access_node, self.access_weight, self.access_rest, self.access_tri, self.access_bary)
         self.contact_rows = (self.row_kind, self.row_tri, self.row_bary, self.row_contact_normal, self.row_floor)

@@ -31,36 +31,53 @@ from suture_gym.sim.rigid import (
 @njit(cache=True)
 def embedded_inv_mass(needle_node_count, node_rows, access_rows, access_count, tri_vertices, tissue, suture_inv_mass,
                       out):  # fmt: skip
-    """Inverse masses (1/kg) the projections use for the suture nodes this substep: a node held on a path
-    (node-path row) carries the inertia of the tissue point it is embedded in, ``min(w_node, sum_k b_k^2 w_k)``,
-    and a node of a strand piece through an access point that of the access point,
-    ``min(w_node, sum_v bary_v^2 w_v)``; the others keep their own. Writes ``out`` (Ns,).
+    """Inverse masses the projections use for the suture nodes this substep, ``W_j = w_j I + a_j t_j t_j^T``
+    (1/kg). A node held on a path (node-path row) is embedded in the tissue point it lies in *across* the path,
+    ``w_j = min(w_node, w_point)`` with ``w_point = sum_k b_k^2 w_k`` (the point's generalised inverse mass),
+    and keeps its own inertia *along* the path's tangent ``t_j`` (``a_j = w_node - w_j``). A node of a strand
+    piece through an access point carries the access point's inertia in every direction,
+    ``W_j = min(w_node, w_point) I``. The others keep their own, ``W_j = w_node I``. Writes
+    ``out = (w (Ns,), a (Ns,), t (Ns, 3))``.
 
-    Why: the thread is 3e-8 kg per node against 1e-4 kg tissue nodes. Projected with its own mass, a node on a
-    path would take the whole of every correction: the inextensible rod's solve pulls a taut thread straight
-    across the path's bends, the node-path projection puts the node back, and the tissue never feels the
-    tension. Embedded in the tissue, the node moves across the path with the tissue, so the solve shares the
+    Why embedded across: the thread is 3e-8 kg per node against 1e-4 kg tissue nodes. Projected with its own
+    mass, a node on a path would take the whole of every correction: the inextensible rod's solve pulls a taut
+    thread straight across the path's bends, the node-path projection puts the node back, and the tissue never
+    feels the tension. Embedded, the node moves across the path with the tissue, so the solve shares the
     thread's length between the needle, the free thread and the tissue, and the node-path projection splits
-    the rest evenly between node and tissue. It slides along the path freely (no row along the tangent); the
-    same holds for the thread in the hole at an access point. A thread node merely touching the surface
-    keeps its own mass: it cannot dent the tissue (an embedded mass there makes the contact push the surface
-    by half of every penetration, which turned out violent). ``tissue`` is the compliance tuple
-    (:mod:`~suture_gym.sim.coupling.compliance`); with the implicit one a point's inverse mass is the mean of
-    its compliance block's diagonal.
+    the rest evenly between node and tissue.
+
+    Why free along: nothing but friction holds a thread from sliding along its path, so its inertia along the
+    path is its own. With the tissue's inertia along the path too, the thread in a bite carried the momentum
+    of the tissue it lies in: on stiff tissue (300 kPa, where ``w_point`` is 1e4 times below ``w_node``) the
+    thread in a first bite coasted on as the needle slowed and fed slack into the wound gap faster than the
+    needle drew it into the second bite, which then jammed (measured on SutureThrow's scripted throw; with
+    the free axis it passes). Not so at an access point: the gradient of eq. 3 lies along the strand piece,
+    so a piece free along itself meets the row by shortening (the inextensible solve then stretches it back;
+    on SutureThrow the fight tore the tissue) instead of moving the access point onto it.
+
+    A thread node merely touching the surface keeps its own mass: it cannot dent the tissue (an embedded mass
+    there makes the contact push the surface by half of every penetration, which turned out violent).
+    ``tissue`` is the compliance tuple (:mod:`~suture_gym.sim.coupling.compliance`); with the implicit one a
+    point's inverse mass is the mean of its compliance block's diagonal.
     """
-    row_kind, _, row_tissue, row_weight, _ = node_rows
+    row_kind, _, row_tissue, row_weight, row_tangent = node_rows
     access_node, access_weight, _, access_tri, access_bary = access_rows
+    out_w, out_a, out_t = out
     nn = needle_node_count
     for j in range(suture_inv_mass.shape[0]):
-        out[j] = suture_inv_mass[j]
+        out_w[j] = suture_inv_mass[j]
+        out_a[j] = 0.0
+        out_t[j] = 0.0
         if j == 0:
             continue
         i = nn + j - 1
         if row_kind[i] != ROW_PATH:
             continue
         w = _isotropic_inv_mass(tissue, row_tissue[i], row_weight[i], PATH_ROW_VERTICES)
-        if w > 0.0 and w < out[j]:
-            out[j] = w
+        if w > 0.0 and w < out_w[j]:
+            out_w[j] = w
+            out_a[j] = suture_inv_mass[j] - w
+            out_t[j] = row_tangent[i]
     for a in range(access_count):
         w = _isotropic_inv_mass(tissue, tri_vertices[access_tri[a]], access_bary[a], 3)
         if w <= 0.0:
@@ -69,8 +86,28 @@ def embedded_inv_mass(needle_node_count, node_rows, access_rows, access_count, t
             node = access_node[a, e]
             if node >= nn and access_weight[a, e] > 0.0:
                 j = node - nn + 1
-                if w < out[j]:
-                    out[j] = w
+                out_w[j] = min(w, out_w[j])
+                out_a[j] = 0.0
+                out_t[j] = 0.0
+
+
+@njit(cache=True)
+def node_inv_mass_along(mass, j, g) -> float:
+    """``g^T W_j g`` (1/kg times |g|^2): suture node ``j``'s inverse mass ``mass = (w, a, t)``
+    (:func:`embedded_inv_mass`) along the gradient ``g`` (3,)."""
+    w, a, t = mass
+    tg = t[j, 0] * g[0] + t[j, 1] * g[1] + t[j, 2] * g[2]
+    return w[j] * (g @ g) + a[j] * tg * tg
+
+
+@njit(cache=True)
+def move_node(mass, j, g, dlam, q):
+    """``q[j] += W_j g dlam``: suture node ``j`` (``mass = (w, a, t)``, :func:`embedded_inv_mass`) takes the
+    impulse ``g dlam`` (kg m). Updates ``q`` (Ns, 3)."""
+    w, a, t = mass
+    q[j] += w[j] * dlam * g
+    if a[j] != 0.0:
+        q[j] += a[j] * dlam * (t[j, 0] * g[0] + t[j, 1] * g[1] + t[j, 2] * g[2]) * t[j]
 
 
 @njit(cache=True)
@@ -95,7 +132,7 @@ def project_suture_path_rows(
     row_tissue,
     row_weight,
     row_tangent,
-    suture_inv_mass,
+    suture_mass,
     tissue,
     force_cap,
     row_lambda,
@@ -103,9 +140,9 @@ def project_suture_path_rows(
     tissue_q,
 ):
     """One Gauss-Seidel pass over the suture nodes' node-path rows (eq. 1, ``C = |(p - q) x t|``), rigid and
-    two-way between the node (its embedded inverse mass, :func:`embedded_inv_mass`) and the path point's tissue
-    vertices, each multiplier kept within ``force_cap`` (kg m, the tear force times ``dt^2``) in magnitude.
-    Updates ``suture_q``, ``tissue_q`` and ``row_lambda``."""
+    two-way between the node (its embedded inverse mass ``suture_mass``, :func:`embedded_inv_mass`) and the
+    path point's tissue vertices, each multiplier kept within ``force_cap`` (kg m, the tear force times
+    ``dt^2``) in magnitude. Updates ``suture_q``, ``tissue_q`` and ``row_lambda``."""
     nn = needle_node_count
     for j in range(1, suture_q.shape[0]):
         i = nn + j - 1
@@ -117,7 +154,7 @@ def project_suture_path_rows(
         ok, c, n = node_path_constraint(suture_q[j], p, row_tangent[i])
         if not ok:
             continue
-        w = suture_inv_mass[j]
+        w = node_inv_mass_along(suture_mass, j, n)
         if is_diagonal(tissue):
             tissue_inv_mass = tissue[0]
             for a in range(PATH_ROW_VERTICES):
@@ -127,7 +164,7 @@ def project_suture_path_rows(
         dlam = xpbd_delta_lambda(c, w, 0.0, row_lambda[i])
         dlam = max(row_lambda[i] + dlam, -force_cap) - row_lambda[i]
         row_lambda[i] += dlam
-        suture_q[j] += suture_inv_mass[j] * dlam * n
+        move_node(suture_mass, j, n, dlam, suture_q)
         move_point(tissue, idx, wt, dlam, n, tissue_q)
 
 
@@ -195,7 +232,7 @@ def _strand_point(node, needle_node_count, needle_pos, needle_quat, needle_node_
 
 
 @njit(cache=True)
-def project_access_rows(access, access_count, needle, suture_inv_mass, tissue, tri_vertices, force_cap, access_lambda,
+def project_access_rows(access, access_count, needle, suture_mass, tissue, tri_vertices, force_cap, access_lambda,
                         needle_pos, needle_quat, suture_q, tissue_q):  # fmt: skip
     """One Gauss-Seidel pass over the first ``access_count`` node-access rows (eq. 3, inequality ``C <= 0``),
     two-way, each multiplier kept within ``force_cap`` (kg m, the tear force times ``dt^2``) in magnitude.
@@ -210,7 +247,8 @@ def project_access_rows(access, access_count, needle, suture_inv_mass, tissue, t
         access: ``CouplingWork.access_rows``: ``(access_node (2K, 4), access_weight (2K, 4), access_rest (2K,) m,
             access_tri (2K,), access_bary (2K, 3))``.
         needle: ``(Nn, inv_mass 1/kg, inv_inertia_body (3, 3), node_body (Nn, 3) m)``.
-        suture_inv_mass: ``(Ns,)`` 1/kg. tissue: the compliance tuple (:mod:`~suture_gym.sim.coupling.compliance`).
+        suture_mass: the suture nodes' inverse masses ``(w, a, t)`` (:func:`embedded_inv_mass`).
+        tissue: the compliance tuple (:mod:`~suture_gym.sim.coupling.compliance`).
         tri_vertices: ``(F, 3)``.
         access_lambda: ``(2K,)`` kg m. needle_pos: ``(3,)`` m. needle_quat: ``(4,)``. suture_q: ``(Ns, 3)`` m.
         tissue_q: ``(N, 3)`` m.
@@ -247,7 +285,7 @@ def project_access_rows(access, access_count, needle, suture_inv_mass, tissue, t
                 lin += g
                 ang += np.cross(points[e] - needle_pos, g)
             else:
-                w += suture_inv_mass[node - nn + 1] * (g @ g)
+                w += node_inv_mass_along(suture_mass, node - nn + 1, g)
         inv_inertia = world_inv_inertia(needle_quat, needle_inv_inertia_body)
         if lin @ lin + ang @ ang > 0.0:
             w += rigid_generalized_inv_mass(needle_inv_mass, inv_inertia, lin, ang)
@@ -260,8 +298,7 @@ def project_access_rows(access, access_count, needle, suture_inv_mass, tissue, t
             node = access_node[a, e]
             if node >= nn:
                 g = access_weight[a, e] * (ga if e < 2 else gb)
-                sn = node - nn + 1
-                suture_q[sn] += suture_inv_mass[sn] * dlam * g
+                move_node(suture_mass, node - nn + 1, g, dlam, suture_q)
         if is_diagonal(tissue):
             for v in range(3):
                 vi = tri_vertices[tri, v]
