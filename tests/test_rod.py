@@ -348,6 +348,37 @@ def test_anisotropic_node_takes_the_correction_along_its_free_axis(free_axis):
     np.testing.assert_allclose(impulse, 0.0, atol=1e-9 * np.abs(moved[0] / w).max())
 
 
+@pytest.mark.parametrize("cap_factor", [1.5, 0.5])
+def test_friction_row_sticks_below_its_cap_and_slides_at_it(cap_factor):
+    """A 3-node inextensible rod along x, node 2 displaced by 1e-4 m along x (a pull), node 1 with a friction
+    row along x (``contact_cap > 0``: ``C = slip = 0`` while the multiplier stays within the cap). With a cap
+    above the multiplier that holding node 1 takes, node 1 sticks and nodes 0 and 2 alone restore the lengths;
+    with a smaller cap the row's multiplier ends at the cap exactly and node 1 slides."""
+    model = RodModel.from_params(SutureParams(node_count=3, length=0.002))
+    state = RodState.straight(model, [0.0, 0.0, 0.0], [1.0, 0.0, 0.0])
+    state.node_pos[2, 0] += 1e-4
+    start = state.node_pos.copy()
+    work = RodWork(model)
+    work.begin(state)
+    w = model.node_inv_mass
+    # holding node 1 still takes the impulse that moves node 2 back by the whole stretch: 1e-4 / w[2] (kg m)
+    hold = 1e-4 / w[2]
+    work.contact_normal[1] = [1.0, 0.0, 0.0]
+    work.contact_cap[1] = cap_factor * hold
+    for _ in range(8):
+        work.contact_gap[1] = state.node_pos[1, 0] - start[1, 0]  # slip since the start
+        rod_solve_iteration(model, state, work, 1e-3)
+    lengths = np.linalg.norm(np.diff(state.node_pos, axis=0), axis=1)
+    np.testing.assert_allclose(lengths, 0.001, atol=1e-12)
+    if cap_factor > 1.0:
+        assert abs(state.node_pos[1, 0] - start[1, 0]) < 1e-12
+        assert abs(work.lam[1, 6]) < work.contact_cap[1]
+    else:
+        assert state.node_pos[1, 0] - start[1, 0] > 1e-6
+        assert abs(work.lam[1, 6]) == pytest.approx(work.contact_cap[1], rel=1e-9)
+    np.testing.assert_array_equal(work.contact_push[1], 0.0)  # a friction row is not a contact's push
+
+
 def test_compliant_stretch_matches_hooke():
     """With ``inextensible=False`` a hanging 1 N load stretches each segment by T / (E A)."""
     model = small_rod(inextensible=False, damping=50.0)

@@ -14,11 +14,15 @@ Kernels take their arrays in groups (tuples built once by :class:`~suture_gym.si
 * ``frames``: ``RodWork.frames``, ``(seg_rot, seg_s, seg_winv (N-1, 3, 3), bend_b (N-2, 3, 3), seg_h (N-1, 3),
   att_r (3,), att_winv (3, 3))``;
 * ``contacts``: ``RodWork.contacts``, ``(contact_gap (N,) m, contact_normal (N, 3), contact_active (N,),
-  contact_push (N, 3) m)``;
+  contact_push (N, 3) m, contact_cap (N,) kg m)``: row 6 of node ``i`` is a one-sided contact where
+  ``contact_cap[i] == 0`` and a two-sided friction row whose accumulated multiplier stays within
+  ``+-contact_cap[i]`` where it is positive (:func:`_contact_rows`);
 * ``system``: ``RodWork.system``, ``(diag, lower, dinv (N, 7, 7), rhs, y, z (N, 7))``.
 """
 
 from __future__ import annotations
+
+import math
 
 import numpy as np
 from numba import njit
@@ -563,10 +567,13 @@ def _bend_rows(j, seg_quat, bend_compliance, frames, diag, rhs, lam, inv_dt2, tm
 
 @njit(cache=True)
 def _contact_rows(rod, has_needle, contacts, system, lam, residual):
-    """Row 6 of block i: node i's one-sided contact, active while it penetrates or already pushes, coupled to
-    the stretch-shear (or attachment) rows through ``x_i``; returns ``residual`` raised to the gaps'."""
+    """Row 6 of block i, ``C = gap_i + n_i . (x - x_i)``, coupled to the stretch-shear (or attachment) rows
+    through ``x_i``: node i's one-sided contact (``C >= 0``), active while it penetrates or already pushes; or,
+    where ``contact_cap[i] > 0``, a friction row (``C = 0``, always active, its multiplier bounded by the cap
+    in :func:`rod_iteration_kernel`). Returns ``residual`` raised to the gaps'."""
     node_inv_mass, seg_rest_length = rod[0], rod[1]
     contact_gap, contact_normal, contact_active = contacts[:3]
+    contact_cap = contacts[4]
     diag, lower, _, rhs = system[:4]
     n = node_inv_mass.shape[0]
     nseg = n - 1
@@ -574,7 +581,7 @@ def _contact_rows(rod, has_needle, contacts, system, lam, residual):
     for i in range(n):
         w = node_inv_mass[i]
         gap = contact_gap[i]
-        active = w > 0.0 and np.isfinite(gap) and (gap < 0.0 or lam[i, 6] > 0.0)
+        active = w > 0.0 and np.isfinite(gap) and (contact_cap[i] > 0.0 or gap < 0.0 or lam[i, 6] > 0.0)
         contact_active[i] = active
         if not active:
             diag[i, 6, 6] = 1.0
@@ -615,24 +622,26 @@ def _frame_torque(mult, seg_s, bend_b, out):
 
 
 @njit(cache=True)
-def release_contact(i, lam_c, contact_active, diag, lower, rhs):
-    """Take node i's contact row out of the system with its step fixed at ``-lam_c`` (its whole push undone).
+def fix_contact_step(i, step, contact_active, diag, lower, rhs):
+    """Take node i's row 6 out of the system with its multiplier step fixed at ``step`` (kg m): ``-lambda``
+    releases a contact that would pull (its whole push undone), ``+-cap - lambda`` holds a friction row at its
+    bound (the node slides).
 
     The fixed step's effect on the coupled stretch-shear/attachment rows moves to their right-hand side, then
-    the row becomes an identity row with right-hand side ``-lam_c``. Updates ``contact_active``, ``diag``,
+    the row becomes an identity row with right-hand side ``step``. Updates ``contact_active``, ``diag``,
     ``lower``, ``rhs``.
     """
     contact_active[i] = False
     for k in range(6):
-        rhs[i, k] += diag[i, k, 6] * lam_c
+        rhs[i, k] -= diag[i, k, 6] * step
         diag[i, k, 6] = 0.0
         diag[i, 6, k] = 0.0
     if i + 1 < diag.shape[0]:
         for k in range(7):
-            rhs[i + 1, k] += lower[i + 1, k, 6] * lam_c
+            rhs[i + 1, k] -= lower[i + 1, k, 6] * step
             lower[i + 1, k, 6] = 0.0
     diag[i, 6, 6] = 1.0
-    rhs[i, 6] = -lam_c
+    rhs[i, 6] = step
 
 
 @njit(cache=True)
@@ -647,7 +656,7 @@ def apply_rod_solution(rod, needle, frames, contacts, z, lam, node_pos, seg_quat
     node_inv_mass, seg_rest_length = rod[0], rod[1]
     has_needle, needle_inv_mass = needle[0], needle[1]
     _, seg_s, seg_winv, bend_b, seg_h, att_r, att_winv = frames
-    _, contact_normal, _, contact_push = contacts
+    _, contact_normal, _, contact_push, contact_cap = contacts
     n = node_pos.shape[0]
     nseg = n - 1
     lam += z
@@ -660,7 +669,8 @@ def apply_rod_solution(rod, needle, frames, contacts, z, lam, node_pos, seg_quat
             impulse[k] = z[i, 6] * contact_normal[i, k]
         inv_mass_times(rod, i, impulse, step)
         for k in range(3):
-            contact_push[i, k] += step[k]
+            if contact_cap[i] == 0.0:  # pushes of contacts only: they set the obstacles' Coulomb friction
+                contact_push[i, k] += step[k]
             if i == 0 and has_needle:
                 impulse[k] += z[0, k]
             if i >= 1:
@@ -710,15 +720,24 @@ def rod_iteration_kernel(rod, needle, start, frames, contacts, system, lam, node
     for i in range(node_pos.shape[0]):
         if contact_active[i]:
             diag[i, 6, 6] += contact_w[i]
-    # active-set refinement: contacts whose multiplier would turn negative (pull) are released and the system
-    # re-solved; contacts still pulling after the last pass stay in for this iteration (the solution remains
-    # consistent) and are released by the next iteration's activation rule.
+    # active-set refinement: contacts whose multiplier would turn negative (pull) are released, friction rows
+    # whose multiplier would pass their cap are held at it, and the system re-solved; rows still outside their
+    # bounds after the last pass stay in for this iteration (the solution remains consistent) and are dealt
+    # with by the next iteration's.
+    contact_cap = contacts[4]
     solve_block_tridiagonal(diag, lower, rhs, dinv, y, z)
     for _ in range(_MAX_RELEASE_PASSES):
         released = False
         for i in range(node_pos.shape[0]):
-            if contact_active[i] and lam[i, 6] + z[i, 6] < 0.0:
-                release_contact(i, lam[i, 6], contact_active, diag, lower, rhs)
+            if not contact_active[i]:
+                continue
+            total = lam[i, 6] + z[i, 6]
+            cap = contact_cap[i]
+            if cap > 0.0 and abs(total) > cap:
+                fix_contact_step(i, math.copysign(cap, total) - lam[i, 6], contact_active, diag, lower, rhs)
+                released = True
+            elif cap == 0.0 and total < 0.0:
+                fix_contact_step(i, -lam[i, 6], contact_active, diag, lower, rhs)
                 released = True
         if not released:
             break

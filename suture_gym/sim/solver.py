@@ -88,6 +88,7 @@ from numba import njit
 
 from suture_gym.sim.coupling import (
     apply_contact_reaction,
+    apply_friction_reaction,
     contact_floors,
     coupling_detect,
     coupling_finish,
@@ -97,6 +98,7 @@ from suture_gym.sim.coupling import (
     project_suture_path_rows,
     strand_positions_kernel,
     suture_contact_rows,
+    suture_friction_rows,
 )
 from suture_gym.sim.coupling.compliance import row_vertices
 from suture_gym.sim.model import Control, Model, State, Work
@@ -571,6 +573,12 @@ class Solver:
         work.lam[1:, 0] = state.suture_tension
         work.begin(rod_state)
         work.contact_gap[:] = np.inf
+        work.contact_cap[:] = 0.0
+        if coupling is not None:
+            friction_rows = (
+                coupling.strand_friction, cwork.row_kind, cwork.row_tissue, cwork.row_weight, cwork.row_tangent,
+                rod_state.node_pos_prev, state.tissue.particle_q_prev, dt,
+            )  # fmt: skip
         state.work.rod_solves = 0
         for _ in range(self.rod_iterations):
             if model.obstacles is not None:
@@ -580,6 +588,10 @@ class Solver:
                     coupling.needle_node_count, coupling.params.resistance_eps, cwork.contact_rows,
                     coupling.surface.tri_vertices, state.tissue.particle_q, tissue_w,
                     rod_state.node_pos, work.contact_gap, work.contact_normal, cwork.suture_contact_w,
+                )  # fmt: skip
+                suture_friction_rows(
+                    coupling.needle_node_count, friction_rows, state.tissue.particle_q, tissue_w, rod_state.node_pos,
+                    work.contact_gap, work.contact_normal, cwork.suture_contact_w, work.contact_cap,
                 )  # fmt: skip
             residual = rod_solve_iteration(
                 suture, rod_state, work, dt, model.needle, state.needle, self.rod_tolerance, inv_mass, contact_w,
@@ -593,6 +605,10 @@ class Solver:
                     coupling.needle_node_count, cwork.contact_rows, coupling.surface.tri_vertices,
                     work.contact_normal, work.z, tissue_w, cwork.row_lambda,
                     state.tissue.particle_q,
+                )  # fmt: skip
+                apply_friction_reaction(
+                    coupling.needle_node_count, friction_rows, work.contact_cap, work.contact_normal, work.z,
+                    tissue_w, cwork.row_friction_lambda, state.tissue.particle_q,
                 )  # fmt: skip
 
     def _update_velocities(self, model: Model, state: State, dt: float) -> bool:

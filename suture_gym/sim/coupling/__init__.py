@@ -86,6 +86,9 @@ Projection (called by :class:`~suture_gym.sim.solver.Solver`)
   :func:`~suture_gym.sim.rod_solver.rod_iteration_kernel` adds to the row, and :func:`apply_contact_reaction` moves
   the tissue by its share.
 * Node-access rows are Gauss-Seidel on the strand piece centred on the access point (:func:`project_access_rows`).
+* Thread friction in the paths (``suture_axial_friction``, off by default) is a bounded row of the rod's direct
+  solve per suture node on a path (:func:`suture_friction_rows`, :func:`apply_friction_reaction`): along its
+  tangent the node is as light as the thread, so only a row inside the solve loads the pull.
 * Contact rows of a node that started the substep inside the resistance layer push it out by at most
   ``depenetration_speed * dt`` (:func:`contact_floors`): an old penetration is resolved over several
   substeps instead of launching the node.
@@ -144,10 +147,12 @@ from suture_gym.sim.coupling.paths import (
 from suture_gym.sim.coupling.readings import coupling_finish
 from suture_gym.sim.coupling.suture_projection import (
     apply_contact_reaction,
+    apply_friction_reaction,
     embedded_inv_mass,
     project_access_rows,
     project_suture_path_rows,
     suture_contact_rows,
+    suture_friction_rows,
 )
 from suture_gym.sim.coupling.tracking import strand_positions_kernel, track_sigma
 
@@ -169,6 +174,7 @@ __all__ = [
     "access_point",
     "append_path_nodes",
     "apply_contact_reaction",
+    "apply_friction_reaction",
     "build_access_rows",
     "build_node_rows",
     "contact_floors",
@@ -192,6 +198,7 @@ __all__ = [
     "surface_normal",
     "surface_point_tet",
     "suture_contact_rows",
+    "suture_friction_rows",
     "tip_crossing",
     "tip_events",
     "tip_patch",

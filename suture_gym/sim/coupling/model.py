@@ -39,8 +39,8 @@ class CouplingModel:
         strand_sigma: ``(M,) float64`` material coordinate of each strand node, m: rest arc length from the tip.
         strand_seg_length: ``(M-1,) float64`` rest length of each strand segment, m.
         strand_friction: ``(M,) float64`` kinetic axial friction cap of each strand node, N
-            (``needle_axial_friction`` times the node's share of needle length; 0 for suture nodes: the thread
-            slides through its paths without friction).
+            (``needle_axial_friction`` times the node's share of needle length; for suture nodes
+            ``suture_axial_friction`` times the node's share of thread length).
         tri_tet_local: ``(F, 3) int8`` local index (0-3) in its tet of each vertex of each boundary triangle.
         tri_rigid: ``(F,) bool`` boundary triangles whose three vertices are pinned: faces glued to a rigid
             support (the base under the tissue, a clamp), which the strand can neither pierce nor leave through.
@@ -116,6 +116,11 @@ class CouplingModel:
         share[:-1] += 0.5 * seg_length[: nn - 1]
         share[1:] += 0.5 * seg_length[: nn - 1]
         friction[:nn] = params.needle_axial_friction * share
+        if ns:
+            thread = np.zeros(sigma.shape[0] - nn)  # strand nodes nn.. are suture nodes 1..
+            thread += 0.5 * seg_length[nn - 1 :]
+            thread[:-1] += 0.5 * seg_length[nn:]
+            friction[nn:] = params.suture_axial_friction * thread
         tets = tissue.tet_indices
         tri = tissue.tri_indices
         local = np.argmax(tets[tissue.tri_tet][:, None, :] == tri[:, :, None], axis=2).astype(np.int8)

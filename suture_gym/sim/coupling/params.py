@@ -65,6 +65,10 @@ class CouplingParams:
             the needle's motion along its path relative to the tissue (0 disables it). Coulomb-like: a constant
             force per length while it slides (no dependence on speed or on the normal load, which a constant
             radial pressure of the tissue on the wire makes constant too), any smaller force while it sticks.
+        suture_axial_friction: kinetic friction force per metre of thread inside the tissue, N/m, resisting the
+            thread's slide along its paths relative to the tissue, Coulomb-like as ``needle_axial_friction``
+            (0, the default: the thread slides freely). Solved as rows of the rod's direct solve
+            (:func:`~suture_gym.sim.coupling.suture_friction_rows`), so pulling the thread through feels it.
         exit_puncture_force: N; while the tip is inside and heads out through the surface, the surface holds
             it (the *exit anchor*, a contact from the inside with ``tip_friction``) until the force the tip
             exerts on it reaches this threshold, the second peak of an insertion (Frick et al. 2001 measure it
@@ -100,6 +104,7 @@ class CouplingParams:
     tip_friction: float = 1.0
     depenetration_speed: float = 0.1
     needle_axial_friction: float = 10.0
+    suture_axial_friction: float = 0.0
     exit_puncture_force: float = 0.0
     cutting_force: float = 0.0
     tip_contact_radius: float = 0.0
@@ -128,6 +133,7 @@ class CouplingParams:
             object.__setattr__(self, name, float(value))
         for name in (
             "needle_axial_friction",
+            "suture_axial_friction",
             "tip_friction",
             "exit_puncture_force",
             "cutting_force",

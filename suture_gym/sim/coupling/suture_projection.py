@@ -224,6 +224,73 @@ def apply_contact_reaction(needle_node_count, contact_rows, tri_vertices, contac
 
 
 @njit(cache=True)
+def suture_friction_rows(needle_node_count, friction_rows, tissue_q, tissue, suture_q, out_gap, out_normal,
+                         out_tissue_w, out_cap):  # fmt: skip
+    """Kinetic friction of the thread in its paths, as friction rows of the rod's solve: a suture node with a
+    node-path row and a friction cap ``strand_friction > 0`` (N) gets row 6 of its block along the path's
+    tangent ``t``, ``C = t . ((x - x_start) - (p - p_start))`` (the slip of node against path point ``p``
+    since the substep began, m), held at 0 while its multiplier stays within ``strand_friction dt^2`` (the
+    thread sticks) and at that bound otherwise (it slides against a constant force). ``out_tissue_w`` gets the
+    path point's inverse mass along ``t`` (1/kg) and ``out_cap`` the bound (kg m); nodes without such a row get
+    ``out_cap = 0``, and a static obstacle's contact row (finite ``out_gap`` not written here) is kept.
+
+    The friction has to be in the rod's solve: the thread node is 3e-8 kg along its path, so a friction
+    impulse applied outside the solve is undone by the solve's inextensibility at no cost to the needle, and
+    the pull never feels it.
+
+    Args:
+        friction_rows: ``(strand_friction (M,) N, row_kind (M,), row_tissue (M, 8), row_weight (M, 8),
+            row_tangent (M, 3), suture_q_start (Ns, 3) m, tissue_q_start (N, 3) m, dt s)``.
+        tissue_q: ``(N, 3)`` m. tissue: the compliance tuple. suture_q: ``(Ns, 3)`` m.
+        out_gap, out_normal, out_tissue_w, out_cap: the rod's contact arrays, ``(Ns,)``, ``(Ns, 3)``, ``(Ns,)``,
+            ``(Ns,)``, written.
+    """
+    strand_friction, row_kind, row_tissue, row_weight, row_tangent, suture_q_start, tissue_q_start, dt = (
+        friction_rows
+    )
+    nn = needle_node_count
+    for j in range(1, suture_q.shape[0]):
+        i = nn + j - 1
+        was_friction = out_cap[j] > 0.0
+        out_cap[j] = 0.0
+        if row_kind[i] != ROW_PATH or strand_friction[i] <= 0.0 or (np.isfinite(out_gap[j]) and not was_friction):
+            if was_friction:
+                out_gap[j] = np.inf
+            continue
+        t = row_tangent[i]
+        idx = row_tissue[i]
+        wt = row_weight[i]
+        path_moved = tissue_point(tissue_q, idx, wt) - tissue_point(tissue_q_start, idx, wt)
+        slip = (suture_q[j] - suture_q_start[j]) - path_moved
+        out_gap[j] = slip @ t
+        out_normal[j] = t
+        if is_diagonal(tissue):
+            out_tissue_w[j] = 0.0
+            for a in range(PATH_ROW_VERTICES):
+                out_tissue_w[j] += wt[a] * wt[a] * tissue[0][idx[a]]
+        else:
+            out_tissue_w[j] = point_inv_mass(tissue, idx, wt, PATH_ROW_VERTICES, t)
+        out_cap[j] = strand_friction[i] * dt * dt
+
+
+@njit(cache=True)
+def apply_friction_reaction(needle_node_count, friction_rows, contact_cap, contact_normal, z, tissue,
+                            row_friction_lambda, tissue_q):  # fmt: skip
+    """Give the tissue the reaction of the rod's friction steps ``z[j, 6]`` (kg m) on suture nodes with a
+    friction row (``contact_cap[j] > 0``, :func:`suture_friction_rows`): the path point takes ``-z t``, so
+    the exchange conserves momentum. Adds each step to ``row_friction_lambda``. Updates ``tissue_q``."""
+    row_tissue, row_weight = friction_rows[2], friction_rows[3]
+    nn = needle_node_count
+    for j in range(1, z.shape[0]):
+        dlam = z[j, 6]
+        if contact_cap[j] <= 0.0 or dlam == 0.0:
+            continue
+        i = nn + j - 1
+        row_friction_lambda[i] += dlam
+        move_point(tissue, row_tissue[i], row_weight[i], dlam, contact_normal[j], tissue_q)
+
+
+@njit(cache=True)
 def _strand_point(node, needle_node_count, needle_pos, needle_quat, needle_node_body, suture_q):
     """World position (3,) of strand node ``node`` (needle node from the pose, or suture node)."""
     if node < needle_node_count:
