@@ -436,7 +436,8 @@ class Solver:
             rows = work.coupling_work
             embedded_inv_mass(
                 model.coupling.needle_node_count, rows.node_rows, rows.access_rows, rows.access_count,
-                model.coupling.surface.tri_vertices, work.compliance, model.suture.node_inv_mass, rows.suture_mass,
+                model.coupling.surface.tri_vertices, work.compliance, model.suture.node_inv_mass, rows.strand_q,
+                rows.suture_mass,
             )  # fmt: skip
 
     @staticmethod

@@ -27,17 +27,22 @@ from suture_gym.sim.rigid import (
     world_inv_inertia,
 )
 
+#: A node on a path is free along the path's tangent only while the thread there runs along it: |cos| of the
+#: angle between the tangent and the thread's local direction at least this (:func:`embedded_inv_mass`).
+ALIGNED_COS = 0.9
+
 
 @njit(cache=True)
 def embedded_inv_mass(needle_node_count, node_rows, access_rows, access_count, tri_vertices, tissue, suture_inv_mass,
-                      out):  # fmt: skip
+                      strand_q, out):  # fmt: skip
     """Inverse masses the projections use for the suture nodes this substep, ``W_j = w_j I + a_j t_j t_j^T``
     (1/kg). A node held on a path (node-path row) is embedded in the tissue point it lies in *across* the path,
     ``w_j = min(w_node, w_point)`` with ``w_point = sum_k b_k^2 w_k`` (the point's generalised inverse mass),
-    and keeps its own inertia *along* the path's tangent ``t_j`` (``a_j = w_node - w_j``). A node of a strand
-    piece through an access point carries the access point's inertia in every direction,
-    ``W_j = min(w_node, w_point) I``. The others keep their own, ``W_j = w_node I``. Writes
-    ``out = (w (Ns,), a (Ns,), t (Ns, 3))``.
+    and keeps its own inertia *along* the path's tangent ``t_j`` (``a_j = w_node - w_j``) while the thread runs
+    along the path there (the thread's direction at the node, from ``strand_q`` (M, 3) m, within
+    ``acos(ALIGNED_COS)`` of ``t_j``; otherwise ``a_j = 0``). A node of a strand piece through an access point
+    carries the access point's inertia in every direction, ``W_j = min(w_node, w_point) I``. The others keep
+    their own, ``W_j = w_node I``. Writes ``out = (w (Ns,), a (Ns,), t (Ns, 3))``.
 
     Why embedded across: the thread is 3e-8 kg per node against 1e-4 kg tissue nodes. Projected with its own
     mass, a node on a path would take the whole of every correction: the inextensible rod's solve pulls a taut
@@ -53,7 +58,10 @@ def embedded_inv_mass(needle_node_count, node_rows, access_rows, access_count, t
     needle drew it into the second bite, which then jammed (measured on SutureThrow's scripted throw; with
     the free axis it passes). Not so at an access point: the gradient of eq. 3 lies along the strand piece,
     so a piece free along itself meets the row by shortening (the inextensible solve then stretches it back;
-    on SutureThrow the fight tore the tissue) instead of moving the access point onto it.
+    on SutureThrow the fight tore the tissue) instead of moving the access point onto it. Nor where the thread
+    crosses its path at an angle (a crushed or kinked path): a free axis across the thread let the solve slide
+    nodes far off the curved path, and the node-path rows threw the tissue back (a 1 N push through 1 kPa
+    tissue diverged; with the gate it does not).
 
     A thread node merely touching the surface keeps its own mass: it cannot dent the tissue (an embedded mass
     there makes the contact push the surface by half of every penetration, which turned out violent).
@@ -76,8 +84,11 @@ def embedded_inv_mass(needle_node_count, node_rows, access_rows, access_count, t
         w = _isotropic_inv_mass(tissue, row_tissue[i], row_weight[i], PATH_ROW_VERTICES)
         if w > 0.0 and w < out_w[j]:
             out_w[j] = w
-            out_a[j] = suture_inv_mass[j] - w
-            out_t[j] = row_tangent[i]
+            d = strand_q[min(i + 1, strand_q.shape[0] - 1)] - strand_q[i - 1]
+            nd = np.sqrt(d @ d)
+            if nd > 0.0 and abs(d @ row_tangent[i]) >= ALIGNED_COS * nd:
+                out_a[j] = suture_inv_mass[j] - w
+                out_t[j] = row_tangent[i]
     for a in range(access_count):
         w = _isotropic_inv_mass(tissue, tri_vertices[access_tri[a]], access_bary[a], 3)
         if w <= 0.0:
