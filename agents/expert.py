@@ -110,7 +110,7 @@ def record(env_id: str, episodes: int, out: str | Path, seed: int = 0, env_kwarg
 
 def main(argv: list[str] | None = None) -> int:
     parser = argparse.ArgumentParser(description="Record scripted-expert demonstrations to an .npz file.")
-    parser.add_argument("--env", required=True, help="env id, e.g. SutureGym/NeedleInsert-v0")
+    parser.add_argument("--env", required=True, help="env id, e.g. SutureGym/NeedleInsert-v1")
     parser.add_argument("--episodes", type=int, default=10)
     parser.add_argument("--seed", type=int, default=0, help="env seed of the first episode")
     parser.add_argument("--out", required=True, help="output .npz path")

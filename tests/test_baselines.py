@@ -25,9 +25,9 @@ RANDOMIZED = Path(__file__).resolve().parents[1] / "configs" / "envs" / "needle_
 #: (algo, env id, env steps): the shipped configs with the budget, batch, warm-up and time limit shortened
 #: (HER samples only finished episodes, so episodes end before learning starts).
 SMOKE = (
-    ("ppo", "SutureGym/NeedleInsert-v0", 128),
-    ("sac", "SutureGym/NeedleInsert-v0", 150),
-    ("tqc", "SutureGym/NeedleInsertGoal-v0", 150),
+    ("ppo", "SutureGym/NeedleInsert-v1", 128),
+    ("sac", "SutureGym/NeedleInsert-v1", 150),
+    ("tqc", "SutureGym/NeedleInsertGoal-v1", 150),
 )
 
 
@@ -54,8 +54,8 @@ def test_config_trains_saves_loads_and_evaluates(tmp_path, algo, env_id, steps):
 
 def test_goal_configs_use_her_with_info_dicts():
     for algo in ("sac", "tqc"):
-        for env_id in ("SutureGym/NeedleInsertGoal-v0", "SutureGym/SutureThrowGoal-v0",
-                       "SutureGym/WoundClosureGoal-v0"):
+        for env_id in ("SutureGym/NeedleInsertGoal-v1", "SutureGym/SutureThrowGoal-v1",
+                       "SutureGym/WoundClosureGoal-v1"):
             hyperparams = load_hyperparams(algo, env_id)
             assert hyperparams["replay_buffer_class"] == "HerReplayBuffer"
             assert hyperparams["replay_buffer_kwargs"]["copy_info_dict"] is True
@@ -64,32 +64,32 @@ def test_goal_configs_use_her_with_info_dicts():
 
 @pytest.mark.parametrize("seed", [0, 1, 2])
 def test_expert_inserts_needle_under_randomisation(seed):
-    summary = evaluate("SutureGym/NeedleInsert-v0", "expert", episodes=1, seed=seed,
+    summary = evaluate("SutureGym/NeedleInsert-v1", "expert", episodes=1, seed=seed,
                        env_kwargs={"config": str(RANDOMIZED)})
     assert summary["success_rate"] == 1.0
     assert summary["diverged_episodes"] == 0
 
 
 def test_expert_inserts_needle_in_pose_delta_mode():
-    summary = evaluate("SutureGym/NeedleInsert-v0", "expert", episodes=1, seed=0,
+    summary = evaluate("SutureGym/NeedleInsert-v1", "expert", episodes=1, seed=0,
                        env_kwargs={"action_mode": "pose_delta"})
     assert summary["success_rate"] == 1.0
 
 
 def test_expert_throws_suture():
-    summary = evaluate("SutureGym/SutureThrow-v0", "expert", episodes=1, seed=0)
+    summary = evaluate("SutureGym/SutureThrow-v1", "expert", episodes=1, seed=0)
     assert summary["success_rate"] == 1.0
     assert summary["diverged_episodes"] == 0
 
 
 @pytest.mark.slow
 def test_expert_closes_wound():
-    summary = evaluate("SutureGym/WoundClosure-v0", "expert", episodes=1, seed=0)
+    summary = evaluate("SutureGym/WoundClosure-v1", "expert", episodes=1, seed=0)
     assert summary["success_rate"] == 1.0
     assert summary["diverged_episodes"] == 0
 
 
-@pytest.mark.parametrize("env_id", ["SutureGym/NeedleInsert-v0", "SutureGym/WoundClosure-v0"])
+@pytest.mark.parametrize("env_id", ["SutureGym/NeedleInsert-v1", "SutureGym/WoundClosure-v1"])
 def test_expert_speeds_default_per_task_and_reject_bad_values(env_id):
     env = gym.make(env_id)
     task = env.unwrapped.task
@@ -105,7 +105,7 @@ def test_expert_speeds_default_per_task_and_reject_bad_values(env_id):
 def test_expert_pull_slides_along_workspace_walls(monkeypatch):
     """Components of the pull toward a wall the tip is within WORKSPACE_INSET of are dropped; the rest keeps
     unit length; a tip cornered against every wall the pull heads for is not pulled at all."""
-    env = gym.make("SutureGym/SutureThrow-v0")
+    env = gym.make("SutureGym/SutureThrow-v1")
     env.reset(seed=0)
     expert = ExpertPolicy(env)
     sim = env.unwrapped.sim
@@ -127,7 +127,7 @@ def test_expert_pull_slides_along_workspace_walls(monkeypatch):
 
 
 def test_expert_leans_the_running_sutures_last_pull_ahead_along_the_suture():
-    env = gym.make("SutureGym/WoundClosure-v0")
+    env = gym.make("SutureGym/WoundClosure-v1")
     env.reset(seed=0)
     expert = ExpertPolicy(env)
     arcs = env.unwrapped.sim.arcs
@@ -137,13 +137,13 @@ def test_expert_leans_the_running_sutures_last_pull_ahead_along_the_suture():
     advance = (arcs[-1].center - arcs[-2].center) / np.linalg.norm(arcs[-1].center - arcs[-2].center)
     assert np.linalg.norm(last) == pytest.approx(1.0)
     assert last @ advance > 0.5 and last @ arcs[-1].pull_direction > 0.5  # ahead, and still back and up
-    single = gym.make("SutureGym/SutureThrow-v0")
+    single = gym.make("SutureGym/SutureThrow-v1")
     single.reset(seed=0)
     np.testing.assert_allclose(ExpertPolicy(single)._planned_pull(0), single.unwrapped.sim.arcs[0].pull_direction)
 
 
 def test_tip_position_matches_observation():
-    env = gym.make("SutureGym/NeedleInsert-v0")
+    env = gym.make("SutureGym/NeedleInsert-v1")
     env.reset(seed=0)
     for _ in range(5):
         env.step(env.action_space.sample())
@@ -158,7 +158,7 @@ def test_expert_rejects_foreign_env():
 
 def test_demonstrations_round_trip(tmp_path):
     out = tmp_path / "demos.npz"
-    summary = record("SutureGym/NeedleInsert-v0", 2, out, seed=3, progress=False)
+    summary = record("SutureGym/NeedleInsert-v1", 2, out, seed=3, progress=False)
     data = np.load(out)
     lengths = data["episode_lengths"]
     assert summary["steps"] == int(lengths.sum()) == data["actions"].shape[0]
@@ -171,7 +171,7 @@ def test_demonstrations_round_trip(tmp_path):
     assert bool(np.all(done[ends])) and int(done.sum()) == 2
     assert np.array_equal(data["observations"][1:lengths[0]], data["next_observations"][:lengths[0] - 1])
     assert float(np.abs(data["actions"]).max()) <= 1.0
-    env = gym.make("SutureGym/NeedleInsert-v0")
+    env = gym.make("SutureGym/NeedleInsert-v1")
     expert = ExpertPolicy(env)
     obs, _ = env.reset(seed=3)
     replayed = 0.0

@@ -102,7 +102,7 @@ def test_same_seed_same_actions_bit_identical(env_id):
 
 
 def test_observations_do_not_alias_internal_arrays():
-    env = _env("SutureGym/NeedleInsert-v0")
+    env = _env("SutureGym/NeedleInsert-v1")
     obs, _ = env.reset(seed=0)
     kept = obs.copy()
     obs[:] = 123.0
@@ -139,7 +139,7 @@ def test_snapshot_restore_replays_identically(env_id):
 
 
 def test_bad_actions_raise_and_finite_out_of_box_actions_pass_unchanged():
-    env = _env("SutureGym/NeedleInsert-v0")
+    env = _env("SutureGym/NeedleInsert-v1")
     env.reset(seed=0)
     with pytest.raises(ValueError, match=r"finite.*\[2\]"):
         env.step(np.array([0.0, 0.0, np.nan, 0.0, 0.0, 0.0]))
@@ -153,7 +153,7 @@ def test_bad_actions_raise_and_finite_out_of_box_actions_pass_unchanged():
 
 
 def test_divergence_truncates_with_the_last_finite_observation():
-    env = _env("SutureGym/NeedleInsert-v0")
+    env = _env("SutureGym/NeedleInsert-v1")
     obs0, _ = env.reset(seed=0)
     obs, reward, terminated, truncated, info = env.step(np.full(6, 1e9, dtype=np.float64))
     assert truncated and not terminated and info["diverged"]
@@ -164,15 +164,15 @@ def test_divergence_truncates_with_the_last_finite_observation():
 
 
 def test_reset_options_are_checked():
-    env = _env("SutureGym/NeedleInsert-v0")
+    env = _env("SutureGym/NeedleInsert-v1")
     with pytest.raises(ValueError, match="unknown reset option"):
         env.reset(seed=0, options={"difficulty": 2})
     with pytest.raises(ValueError, match="phase"):
         env.reset(seed=0, options={"phase": "first_bite"})
     with pytest.raises(ValueError, match="unknown episode parameter"):
         env.reset(seed=0, options={"params": {"stiffness": 1.0}})
-    _, info = env.reset(seed=0, options={"params": {"youngs_modulus": 2500.0}})
-    assert info["params"]["youngs_modulus"] == 2500.0
+    _, info = env.reset(seed=0, options={"params": {"youngs_modulus": 250000.0}})
+    assert info["params"]["youngs_modulus"] == 250000.0
 
 
 #: A smaller wound-closure scene (two stitches, shorter bars and thread) for the first-bite phase test.
@@ -199,7 +199,7 @@ def test_start_phases(task, config, phase, check):
 
 
 def test_scripted_surgeon_completes_needle_insert():
-    env = _env("SutureGym/NeedleInsert-v0")
+    env = _env("SutureGym/NeedleInsert-v1")
     env.reset(seed=0)
     arc = env.sim.arcs[0]
     angle = arc.entry_angle - env.config.plan.start_angle
@@ -266,9 +266,9 @@ def test_goal_env_reward_is_compute_reward(env_id):
 def test_a_miss_ends_flat_episodes_only():
     """Relabelled goals of the goal-conditioned variant may still be reachable after a miss, so only the flat
     ids end on it (``termination.end_on_miss``)."""
-    flat = gym.make("SutureGym/NeedleInsert-v0").unwrapped
-    goal = gym.make("SutureGym/NeedleInsertGoal-v0").unwrapped
-    off = gym.make("SutureGym/NeedleInsert-v0", config={"termination": {"end_on_miss": False}}).unwrapped
+    flat = gym.make("SutureGym/NeedleInsert-v1").unwrapped
+    goal = gym.make("SutureGym/NeedleInsertGoal-v1").unwrapped
+    off = gym.make("SutureGym/NeedleInsert-v1", config={"termination": {"end_on_miss": False}}).unwrapped
     for env in (flat, goal, off):
         env.reset(seed=0)
     assert flat.task.end_on_miss and not goal.task.end_on_miss and not off.task.end_on_miss
@@ -278,7 +278,7 @@ def test_render_rgb_array_and_record_video(tmp_path):
     pytest.importorskip("moviepy")
     from gymnasium.wrappers import RecordVideo
 
-    env = gym.make("SutureGym/NeedleInsert-v0", render_mode="rgb_array")
+    env = gym.make("SutureGym/NeedleInsert-v1", render_mode="rgb_array")
     env = RecordVideo(env, str(tmp_path / "videos"), episode_trigger=lambda k: True, disable_logger=True)
     env.reset(seed=0)
     frame = env.unwrapped.render()
@@ -292,10 +292,10 @@ def test_render_rgb_array_and_record_video(tmp_path):
 
 
 def test_yaml_config_reaches_the_env():
-    env = gym.make("SutureGym/NeedleInsert-v0", config=CONFIGS / "needle_insert_randomized.yaml").unwrapped
+    env = gym.make("SutureGym/NeedleInsert-v1", config=CONFIGS / "needle_insert_randomized.yaml").unwrapped
     assert env.config.observation.privileged and env.config.randomization.youngs_modulus_scale != (1.0, 1.0)
     with pytest.raises(ValueError, match="'reward.bonus'"):
-        gym.make("SutureGym/NeedleInsert-v0", config={"reward": {"bonus": 1.0}})
+        gym.make("SutureGym/NeedleInsert-v1", config={"reward": {"bonus": 1.0}})
 
 
 def test_record_video_script_films_the_expert(tmp_path):
@@ -305,7 +305,7 @@ def test_record_video_script_films_the_expert(tmp_path):
     import sys
 
     script = Path(__file__).resolve().parents[1] / "scripts" / "record_video.py"
-    done = subprocess.run([sys.executable, str(script), "--env", "SutureGym/NeedleInsert-v0", "--out", str(tmp_path),
+    done = subprocess.run([sys.executable, str(script), "--env", "SutureGym/NeedleInsert-v1", "--out", str(tmp_path),
                            "--seconds", "0.1", "--every", "5"], capture_output=True, text=True, check=True, timeout=600)
     line = json.loads(done.stdout.strip().splitlines()[-1])
     video = tmp_path / "needle_insert.mp4"

@@ -469,7 +469,10 @@ def test_every_simulator_parameter_is_a_config_key_with_one_default(section, sim
     cfg = default_config("needle_insert")
     values = config_to_dict(getattr(cfg, section))
     env_scale = {"tissue": {"youngs_modulus", "poisson_ratio"}, "suture": {"length", "node_count"},
-                 "coupling": {"puncture_force", "tear_force", "needle_axial_friction"}, "solver": {"max_speed"}}
+                 "needle": {"holder_mass", "holder_inertia"},
+                 "coupling": {"puncture_force", "tear_force", "needle_axial_friction", "exit_puncture_force",
+                              "cutting_force", "tip_contact_radius"},
+                 "solver": {"max_speed", "iterations", "tissue_integrator"}}
     sim_default = sim_cls()
     for f in dataclass_fields(sim_cls):
         assert f.name in values

@@ -99,15 +99,15 @@ class TissueConfig(TissueMaterial):
     """Tissue material: the simulator's :class:`~suture_gym.sim.model.TissueMaterial` itself (its fields, units
     and checks), with the environments' defaults for the fields below; the others keep the simulator's.
 
-    Default 3 kPa, three times the paper's 1 kPa: an 8 mm pad of it sags 0.1 mm under its own weight. It is
-    the stiffest material the solver keeps at rest at the default substep (1 ms) and cell size (2 mm): with one
-    Gauss-Seidel sweep per substep, tissue at rest starts to oscillate once ``dt sqrt(E / rho) / h`` exceeds
-    about 0.9 (measured on a 12 x 24 x 8 mm pad of 2 mm cells: 3 kPa at 1 ms stays within its 0.1 mm sag,
-    4 kPa oscillates by 0.4 mm, 30 kPa by 10 mm). Stiffer tissue needs a smaller ``solver.dt`` (10 kPa:
-    0.5 ms) or larger cells.
+    Default 300 kPa: a silicone suture-training pad (platinum-cure silicones of the pads' hardness, Shore 00-30
+    to 10A, have E of about 0.1-0.5 MPa; skin is reported from tens of kPa in indentation to about 1 MPa in
+    tension), with nu = 0.45. The implicit tissue integrator (``solver.tissue_integrator``) keeps it true to its material at
+    the default substep (docs/tissue_integrator.md). Every force default of the environments is scaled with it
+    (:class:`CouplingConfig`, :class:`ActionConfig`, :class:`NeedleConfig`; the ``*_paper.yaml`` configs are
+    the seed paper's 1 kPa).
     """
 
-    youngs_modulus: float = 3.0e3  # Pa
+    youngs_modulus: float = 3.0e5  # Pa
     poisson_ratio: float = 0.45  # dimensionless, [0, 0.5]
 
 
@@ -144,9 +144,12 @@ class SceneConfig(_Section):
 @dataclass(frozen=True)
 class NeedleConfig(NeedleShape):
     """The curved needle and its holder: the simulator's :class:`~suture_gym.sim.needle.NeedleShape` itself
-    (its fields, units, defaults and checks) plus the body's damping and gravity compensation of
+    (its fields, units, defaults and checks; the holder's mass and inertia scaled with the forces, see
+    :class:`ActionConfig`) plus the body's damping and gravity compensation of
     :meth:`~suture_gym.sim.needle.NeedleModel.from_shape`."""
 
+    holder_mass: float = 2.0  # kg, the needle driver and the hand (the arm's endpoint mass is 1-3 kg)
+    holder_inertia: float = 1.0e-4  # kg m^2
     linear_damping: float = 5.0  # 1/s, velocity damping of the needle body
     angular_damping: float = 5.0  # 1/s
     gravity_compensation: bool = True  # the haptic device carries the needle's weight
@@ -188,18 +191,25 @@ class SutureConfig(SutureParams):
 @dataclass(frozen=True)
 class CouplingConfig(CouplingParams):
     """Needle/suture-tissue interaction: the simulator's :class:`~suture_gym.sim.coupling.CouplingParams`
-    itself (all its fields, units and checks), with the environments' defaults for the three below.
+    itself (all its fields, units and checks), with the environments' defaults for the six below.
 
-    Forces scale with the tissue's stiffness: on the 3 kPa default tissue the scripted surgeon's needle needs
-    3-11 mN while it cuts along the plan, so the puncture threshold is 5 mN (a puncture lands within about
-    1 mm of the planned entry; at 10 mN the tip slides 1.3 mm, at 20 mN it slips in without puncturing) and
-    the tear force 0.1 N, ten times the working forces. Multiplied by 300, these are the forces of a
-    1 MPa tissue: 1.5 N to puncture, 30 N to tear.
+    Forces scale with the tissue's stiffness (the dent a force makes goes as ``F / E``). The thresholds were
+    tuned on 3 kPa tissue, where the scripted surgeon's needle needs 3-11 mN while it cuts along the plan: a
+    5 mN puncture threshold lands within about 1 mm of the planned entry (at 10 mN the tip slides 1.3 mm, at
+    20 mN it slips in without puncturing), and the tear force is ten times the working forces. On the 300 kPa
+    default tissue these are 0.5 N to puncture (measured suture-needle punctures: 0.5-2 N) and 10 N to tear.
+    The insertion force model is on (docs/design.md, section 5.1): an exit peak of half the entry's (Frick et
+    al. 2001), a cutting force of a fifth of the puncture force while the tip advances (the cutting term of
+    Okamura et al. 2004) and a 1 mm tip patch, so the force before puncture rises with the tip's stiffness, not
+    the mesh's.
     """
 
-    puncture_force: float = 0.005  # N, tip force that pierces the surface
-    tear_force: float = 0.1  # N, coupling force that tears the tissue (ends the episode)
-    needle_axial_friction: float = 1.5  # N/m of needle inside the tissue
+    puncture_force: float = 0.5  # N, tip force that pierces the surface
+    exit_puncture_force: float = 0.25  # N, force on the surface from inside that lets the tip out
+    cutting_force: float = 0.1  # N, resistance to the tip's advance while a puncture is open
+    tip_contact_radius: float = 1.0e-3  # m, radius of the surface patch the tip loads before puncture
+    tear_force: float = 10.0  # N, coupling force that tears the tissue (ends the episode)
+    needle_axial_friction: float = 150.0  # N/m of needle inside the tissue
 
     def params(self, puncture_force: float | None = None) -> CouplingParams:
         """The :class:`~suture_gym.sim.coupling.CouplingParams` of these fields, with ``puncture_force`` (N)
@@ -216,6 +226,8 @@ class SolverConfig(Solver):
     checks; ``max_speed`` tighter here), plus the substep ``dt``: one env step is ``substeps`` solver substeps
     of ``dt``."""
 
+    iterations: int = 2  # sweeps per substep: the implicit tissue solve and the coupling rows alternate twice
+    tissue_integrator: str = "quasi_newton"  # implicit Euler: true to the material at 1 ms (issue 13)
     max_speed: float = 20.0  # m/s, divergence threshold
     dt: float = 1.0e-3  # s, substep
     substeps: int = 5  # substeps per env step
@@ -246,15 +258,16 @@ class ActionConfig(_Section):
     SECTION: ClassVar[str] = "action"
 
     mode: str = "wrench"  # "wrench" or "pose_delta"
-    max_force: float = 0.05  # N per component (half the tear force)
-    max_torque: float = 2.0e-4  # N m per component
+    max_force: float = 5.0  # N per component (half the tear force)
+    max_torque: float = 0.02  # N m per component
     max_translation: float = 2.0e-4  # m per env step and component (pose_delta)
     max_rotation: float = 0.03  # rad per env step and component (pose_delta)
-    # the virtual coupling (pose_delta, and the scripted surgeon): VirtualCoupling's fields and defaults
-    coupling_linear_stiffness: float = VirtualCoupling.linear_stiffness  # N/m
-    coupling_linear_damping: float = VirtualCoupling.linear_damping  # N s/m
-    coupling_angular_stiffness: float = VirtualCoupling.angular_stiffness  # N m/rad
-    coupling_angular_damping: float = VirtualCoupling.angular_damping  # N m s/rad
+    # the virtual coupling (pose_delta, and the scripted surgeon): VirtualCoupling's defaults scaled, like the
+    # holder's mass and inertia, by the forces' factor of 100 (the same response time and damping ratio)
+    coupling_linear_stiffness: float = 100.0 * VirtualCoupling.linear_stiffness  # N/m
+    coupling_linear_damping: float = 100.0 * VirtualCoupling.linear_damping  # N s/m
+    coupling_angular_stiffness: float = 100.0 * VirtualCoupling.angular_stiffness  # N m/rad
+    coupling_angular_damping: float = 100.0 * VirtualCoupling.angular_damping  # N m s/rad
 
     def validate(self, path: str) -> None:
         _choice(f"{path}.mode", self.mode, ACTION_MODES)
@@ -335,7 +348,7 @@ class RewardConfig(_Section):
     tissue_force: float = 0.5  # per step at cost 1
     action: float = 0.01  # per step: -w mean(a^2)
     access_tolerance: float = 1.5e-3  # m, how close a puncture or exit must be to its planned point
-    safe_force: float = 0.02  # N, coupling force below which the tissue-force cost is 0
+    safe_force: float = 2.0  # N, coupling force below which the tissue-force cost is 0
     goal: str = "sparse"  # goal-conditioned variants: "sparse" (-1 until the goal is met, else 0) or "dense"
 
     def validate(self, path: str) -> None:

@@ -17,7 +17,9 @@ from dataclasses import fields
 from suture_gym.tasks.base import Task
 
 #: Section titles of the generated docstrings, in order.
-SECTIONS = ("Action Space", "Observation Space", "Rewards", "Starting State", "Episode End", "Arguments")
+SECTIONS = (
+    "Action Space", "Observation Space", "Rewards", "Starting State", "Episode End", "Arguments", "Version History",
+)  # fmt: skip
 
 
 def _section(title: str, lines: list[str]) -> list[str]:
@@ -123,6 +125,7 @@ def env_docstring(task: type[Task], goal_conditioned: bool) -> str:
     lines += _section("Starting State", _start_lines(task, config))
     lines += _section("Episode End", _end_lines(task, config))
     lines += _section("Arguments", _argument_lines(task))
+    lines += _section("Version History", [f"* {line}" for line in task.VERSION_HISTORY] or ["* the first version."])
     return "\n".join(lines) + "\n"
 
 

@@ -156,7 +156,7 @@ def _scripted_settings(env_id: str, turn_rate: float, pull_speed: float | None) 
 def check_needle_insert_scripted_accuracy() -> CheckResult:
     """The scripted surgeon's bite in NeedleInsert: the larger of the entry and exit errors (material points
     against the planned markers) must be within the task's access tolerance, and the episode must succeed."""
-    env_id, rate = "SutureGym/NeedleInsert-v0", 2.0
+    env_id, rate = "SutureGym/NeedleInsert-v1", 2.0
     run = _scripted_episode(env_id, rate, None)
     tolerance = gym.make(env_id).unwrapped.config.reward.access_tolerance
     measured = max(run["entry_error_m"], run["exit_error_m"])
@@ -170,7 +170,7 @@ def check_needle_insert_scripted_accuracy() -> CheckResult:
 def check_suture_throw_scripted_thread() -> CheckResult:
     """The scripted surgeon's stitch in SutureThrow: thread pulled through the far edge's exit (m), at least
     the task's target, with the episode successful (entry and exit within tolerance) and no divergence."""
-    env_id, rate, speed = "SutureGym/SutureThrow-v0", 1.0, 0.02
+    env_id, rate, speed = "SutureGym/SutureThrow-v1", 1.0, 0.02
     run = _scripted_episode(env_id, rate, speed)
     target = gym.make(env_id).unwrapped.config.plan.thread_target
     measured = run["thread_through_m"] if run["is_success"] and not run["diverged"] else -math.inf
@@ -209,6 +209,6 @@ def bench_vector_env() -> dict:
         "solver_fraction": timings.get("project", 0.0) / solver_total,
         "env_steps_per_s": VECTOR_ENVS * steps / elapsed,
         "num_envs": VECTOR_ENVS,
-        "env_id": "SutureGym/NeedleInsert-v0",
+        "env_id": "SutureGym/NeedleInsert-v1",
         "workload": "seeded uniform random actions, NEXT_STEP autoreset, time limit 300; substep_ms is a mean",
     }

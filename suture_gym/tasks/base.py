@@ -215,6 +215,17 @@ class StepContext:
     failed: bool
 
 
+#: The built-in tasks' version history (:attr:`Task.VERSION_HISTORY`): the physics they share.
+BUILTIN_VERSION_HISTORY = (
+    "v1 (issues 13, 14): real-scale physics. Tissue 300 kPa (a silicone suture-training pad; was 3 kPa) on the "
+    "implicit quasi-Newton integrator with two sweeps per substep (was XPBD, which at the env's time step gave "
+    "the wrong Poisson's ratio and softness); every force x100: puncture 0.5 N, tear 10 N, actions up to 5 N "
+    "and 0.02 N m per axis, holder 2 kg; the insertion force model on (exit peak 0.25 N, cutting 0.1 N, a 1 mm "
+    "tip patch); thread nodes in a path keep their own inertia along it.",
+    "v0: 3 kPa XPBD tissue and millinewton forces (puncture 5 mN, actions up to 0.05 N and 2e-4 N m).",
+)
+
+
 class Task(ABC):
     """Base of the suturing tasks. Subclasses set the class attributes and the goal methods.
 
@@ -239,6 +250,9 @@ class Task(ABC):
     GOAL_ENV_ID: ClassVar[str | None] = None
     #: Time limit, env steps.
     MAX_EPISODE_STEPS: ClassVar[int] = 0
+    #: The ids' version history for the env docs, newest first: one line per version, what changed and why.
+    #: Bump the ids' version (and add a line) whenever a change alters what an episode does.
+    VERSION_HISTORY: ClassVar[tuple[str, ...]] = ()
     #: The task's config defaults: nested overrides of the typed defaults of
     #: :class:`~suture_gym.envs.config.EnvConfig` (what the registered ids use; YAML overrides them in turn).
     CONFIG: ClassVar[dict] = {}

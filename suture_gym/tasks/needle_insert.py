@@ -1,10 +1,10 @@
-"""``SutureGym/NeedleInsert-v0``: pierce at the marked entry, follow the planned arc, exit at the marked exit."""
+"""``SutureGym/NeedleInsert-v1``: pierce at the marked entry, follow the planned arc, exit at the marked exit."""
 
 from __future__ import annotations
 
 import numpy as np
 
-from suture_gym.tasks.base import Observables, Task
+from suture_gym.tasks.base import BUILTIN_VERSION_HISTORY, Observables, Task
 
 
 class NeedleInsert(Task):
@@ -21,9 +21,10 @@ class NeedleInsert(Task):
     """
 
     NAME = "needle_insert"
-    ENV_ID = "SutureGym/NeedleInsert-v0"
-    GOAL_ENV_ID = "SutureGym/NeedleInsertGoal-v0"
+    ENV_ID = "SutureGym/NeedleInsert-v1"
+    GOAL_ENV_ID = "SutureGym/NeedleInsertGoal-v1"
     MAX_EPISODE_STEPS = 600
+    VERSION_HISTORY = BUILTIN_VERSION_HISTORY
     CONFIG = {}
     TERMS = ("path", "progress", "entry", "exit", "puncture", "success", "failure", "tissue_force", "action")
     PHASES = ("approach", "inserted")

@@ -31,10 +31,11 @@ from suture_gym.tasks.geometry import PlannedArc
 TURN_RATE = 1.0
 #: How far (rad) the tip is turned past the exit (``exited``), and the swage past the exit before a pull.
 CLEARANCE = 0.3
-#: Force (N) and damping (N s/m) with which the start-phase script pulls the thread once the needle is out, and
+#: Force and damping with which the start-phase script pulls the thread once the needle is out, per newton of
+#: the action's ``max_force`` (so they scale with the tissue's forces: 3 N and 200 N s/m at the defaults), and
 #: the longest it pulls (s).
-PULL_FORCE = 0.03
-PULL_DAMPING = 2.0
+PULL_FORCE_PER_MAX_FORCE = 0.6
+PULL_DAMPING_PER_MAX_FORCE = 40.0  # s/m
 PULL_TIME = 3.0
 #: Closest approach (m) of the needle tip to the workspace's walls that the expert's pull may make.
 WORKSPACE_INSET = 0.002
@@ -92,17 +93,18 @@ def turn(sim, arc: PlannedArc, start: float, end: float) -> None:
 
 
 def pull_thread(sim, arc: PlannedArc, tip_angle: float, target: float) -> None:
-    """Pull ``sim``'s needle along ``arc.pull_direction`` with :data:`PULL_FORCE` (damped by
-    :data:`PULL_DAMPING`; orientation held at the pose of ``tip_angle`` rad) until ``target`` m of thread is
-    through, for at most :data:`PULL_TIME` s."""
+    """Pull ``sim``'s needle along ``arc.pull_direction`` with :data:`PULL_FORCE_PER_MAX_FORCE` times the
+    action's ``max_force`` (damped by :data:`PULL_DAMPING_PER_MAX_FORCE` times it; orientation held at the pose
+    of ``tip_angle`` rad) until ``target`` m of thread is through, for at most :data:`PULL_TIME` s."""
     _, hold = circle_grip_target(sim.model.needle, arc.center, arc.axis, arc.u, tip_angle)
-    force = PULL_FORCE * arc.pull_direction
+    max_force = sim.config.action.max_force
+    force = PULL_FORCE_PER_MAX_FORCE * max_force * arc.pull_direction
+    damping = PULL_DAMPING_PER_MAX_FORCE * max_force
     for _ in range(int(math.ceil(PULL_TIME / sim.control_dt))):
         if sim.thread_through() >= target or sim.state.diverged:
             return
         for _ in range(sim.substeps):
-            sim.substep(pull_wrench(sim.model.needle, sim.state.needle, hold, force, PULL_DAMPING,
-                                    sim.coupling_spring))
+            sim.substep(pull_wrench(sim.model.needle, sim.state.needle, hold, force, damping, sim.coupling_spring))
 
 
 def run_start_phase(sim, phase: str) -> None:
