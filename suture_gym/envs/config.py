@@ -101,10 +101,10 @@ class TissueConfig(TissueMaterial):
 
     Default 300 kPa: a silicone suture-training pad (platinum-cure silicones of the pads' hardness, Shore 00-30
     to 10A, have E of about 0.1-0.5 MPa; skin is reported from tens of kPa in indentation to about 1 MPa in
-    tension), with nu = 0.45. The implicit tissue integrator (``solver.tissue_integrator``) keeps it true to its material at
-    the default substep (docs/tissue_integrator.md). Every force default of the environments is scaled with it
-    (:class:`CouplingConfig`, :class:`ActionConfig`, :class:`NeedleConfig`; the ``*_paper.yaml`` configs are
-    the seed paper's 1 kPa).
+    tension), with nu = 0.45. The implicit tissue integrator (``solver.tissue_integrator``) keeps it true to its
+    material at the default substep (docs/tissue_integrator.md). Every force default of the environments is
+    scaled with it (:class:`CouplingConfig`, :class:`ActionConfig`, :class:`NeedleConfig`; the ``*_paper.yaml``
+    configs are the seed paper's 1 kPa).
     """
 
     youngs_modulus: float = 3.0e5  # Pa
