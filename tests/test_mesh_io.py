@@ -109,3 +109,75 @@ def test_tetwild_backend_follows_the_surface():
     assert np.all(signed_volumes(mesh.vertices, mesh.tets) > 0)
     volume = signed_volumes(mesh.vertices, mesh.tets).sum()
     assert abs(volume - sphere.volume) / sphere.volume < 0.03
+
+
+def _gmsh_file(path):
+    mesh = box_tet_grid(size=(0.02, 0.01, 0.01), cells=(2, 1, 1))
+    write_tet_mesh(path, mesh)
+    return path.read_bytes()
+
+
+def test_msh_is_written_as_gmsh_and_read_back(tmp_path):
+    data = _gmsh_file(tmp_path / "m.msh")
+    assert data.startswith(b"$MeshFormat")
+    assert read_tet_mesh(tmp_path / "m.msh").tet_count == 10
+
+
+@pytest.mark.parametrize("fraction", [0.3, 0.6, 0.9])
+def test_truncated_msh_names_the_file(tmp_path, fraction):
+    data = _gmsh_file(tmp_path / "m.msh")
+    (tmp_path / "cut.msh").write_bytes(data[: int(len(data) * fraction)])
+    with pytest.raises(ValueError, match=r"cut\.msh.*could not be read"):
+        read_tet_mesh(tmp_path / "cut.msh")
+
+
+def test_non_gmsh_msh_is_refused_by_name(tmp_path):
+    (tmp_path / "fluent.msh").write_text('(0 "ANSYS mesh")\n(10 (0 1 8 0 3))\n(10 (1 1 8 1 3)(\n0 0 0\n')
+    with pytest.raises(ValueError, match=r"fluent\.msh.*not a Gmsh file"):
+        read_tet_mesh(tmp_path / "fluent.msh")
+
+
+@pytest.mark.parametrize("name", ["garbage.vtu", "garbage.vtk", "garbage.mesh", "empty.vtu", "empty.vtk"])
+def test_unreadable_tet_file_raises_value_error_not_system_exit(tmp_path, name, capsys):
+    (tmp_path / name).write_bytes(b"" if name.startswith("empty") else b"not a mesh \x00\xff\xfe\n" * 8)
+    with pytest.raises(ValueError, match=name.replace(".", r"\.")):
+        read_tet_mesh(tmp_path / name)
+    assert capsys.readouterr().out == ""  # meshio's complaints are in the message, not on stdout
+
+
+def test_truncated_ply_is_refused_by_the_tet_reader(tmp_path):
+    path = tmp_path / "cut.ply"
+    trimesh.creation.box(extents=(0.02, 0.02, 0.02)).export(path)
+    path.write_bytes(path.read_bytes()[:20])  # meshio's PLY reader loops forever on this
+    with pytest.raises(ValueError, match=r"cut\.ply.*holds no tetrahedra"):
+        read_tet_mesh(path)
+
+
+def test_invalid_mesh_in_a_file_names_the_file(tmp_path):
+    mesh = box_tet_grid(size=(0.02, 0.01, 0.01), cells=(2, 1, 1))
+    tets = mesh.tets.astype(np.int64).copy()
+    tets[3, [1, 2]] = tets[3, [2, 1]]
+    meshio.write(tmp_path / "flipped.vtu", meshio.Mesh(mesh.vertices, [("tetra", tets)]))
+    with pytest.raises(ValueError, match=r"flipped\.vtu.*tet 3"):
+        read_tet_mesh(tmp_path / "flipped.vtu")
+
+
+@pytest.mark.parametrize("name", ["garbage.obj", "garbage.stl", "garbage.off", "garbage.vtu", "cut.msh", "empty.ply"])
+def test_unreadable_surface_file_names_the_file(tmp_path, name):
+    if name == "cut.msh":
+        data = _gmsh_file(tmp_path / "m.msh")[:300]
+    elif name.startswith("empty"):
+        data = b""
+    else:
+        data = b"not a mesh \x00\xff\xfe\n" * 8
+    (tmp_path / name).write_bytes(data)
+    with pytest.raises(ValueError, match=name.replace(".", r"\.")):
+        load_surface_mesh(tmp_path / name)
+
+
+def test_surface_from_a_meshio_format_loads(tmp_path):
+    box = trimesh.creation.box(extents=(0.02, 0.02, 0.02))
+    meshio.write(tmp_path / "box.vtu", meshio.Mesh(box.vertices, [("triangle", box.faces)]))
+    surface = load_surface_mesh(tmp_path / "box.vtu")
+    assert surface.is_watertight
+    assert surface.volume == pytest.approx(8e-6)

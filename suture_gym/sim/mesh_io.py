@@ -14,11 +14,19 @@
   TetGen is deliberately not offered: it bundles AGPL code.
 
 Every mesh returned here has passed :func:`~suture_gym.sim.mesh.validate_tet_mesh`, so a bad file fails at
-load time with a ValueError naming the bad element rather than later inside the solver.
+load time with a ValueError naming the bad element rather than later inside the solver. A file the readers
+cannot parse (empty, truncated, garbage) also raises a ValueError naming the file and what went wrong: meshio's
+own failure modes (a ``sys.exit(1)`` when no reader accepts the file, bare numpy errors from a truncated one)
+never reach the caller. ``.msh`` means Gmsh here, read and written: meshio would write ANSYS and, on a Gmsh file
+it failed to parse, try its ANSYS reader, which loops forever on a truncated file. For the same reason (meshio's
+PLY reader loops on a truncated header) the surface-only formats are refused by :func:`read_tet_mesh` before
+they are opened.
 """
 
 from __future__ import annotations
 
+import contextlib
+import io
 import os
 import tempfile
 from pathlib import Path
@@ -28,6 +36,15 @@ import numpy as np
 from suture_gym.sim.mesh import TetMesh, box_tet_grid, signed_volumes
 
 BACKENDS = ("auto", "tetwild", "voxel")
+
+#: Surface-only file formats: they hold no tetrahedra (fill them with :func:`tetrahedralize_surface`).
+SURFACE_FORMATS = (".obj", ".off", ".ply", ".stl")
+
+#: File extensions trimesh reads with its own loaders; every other extension goes through meshio.
+TRIMESH_FORMATS = (
+    ".3dxml", ".3mf", ".ctm", ".dae", ".glb", ".gltf", ".obj", ".off", ".ply", ".step", ".stl", ".stp", ".xaml",
+    ".xyz", ".zae",
+)
 
 
 def _require_meshio():
@@ -50,29 +67,74 @@ def read_tet_mesh(path: str | Path) -> TetMesh:
 
     Raises:
         FileNotFoundError: the file does not exist.
-        ValueError: the file has no tetrahedra, or the mesh is invalid (inverted/zero-volume tet, non-finite
-            coordinate, open surface...; the message names the element).
+        ValueError: naming the file: it is empty, damaged or not a mesh file (what the reader said), a
+            surface-only format, a ``.msh`` that is not Gmsh, it has no tetrahedra, or the mesh is invalid
+            (inverted/zero-volume tet, non-finite coordinate, open surface...; the message names the element).
     """
-    meshio = _require_meshio()
     path = Path(path)
     if not path.exists():
         raise FileNotFoundError(f"tet mesh file {str(path)!r} does not exist")
-    data = meshio.read(path)
+    if path.suffix.lower() in SURFACE_FORMATS:
+        raise ValueError(
+            f"{str(path)!r} is a surface format ({path.suffix}), which holds no tetrahedra: fill it with "
+            "tetrahedralize_surface"
+        )
+    data = _read_meshio(path)
     blocks = [np.asarray(c.data) for c in data.cells if c.type == "tetra"]
     if not blocks:
         kinds = sorted({c.type for c in data.cells})
         raise ValueError(f"{str(path)!r} holds no 'tetra' cells (found {kinds}); a volume mesh is needed")
     tets = np.concatenate(blocks).astype(np.int64)
+    vertices = _points(data, path)
+    try:
+        return _compact(vertices, tets)
+    except ValueError as exc:
+        raise ValueError(f"{str(path)!r}: {exc}") from exc
+
+
+def _read_meshio(path: Path):
+    """``meshio.read(path)``, every way a bad file fails turned into a ValueError naming ``path``.
+
+    meshio prints its readers' complaints and calls ``sys.exit(1)`` when none accepts the file; that text is
+    captured into the message instead. A ``.msh`` file must be Gmsh (``$MeshFormat`` header): see the module
+    docstring.
+    """
+    meshio = _require_meshio()
+    name = repr(str(path))
+    with path.open("rb") as fh:
+        head = fh.read(64)
+    if not head:
+        raise ValueError(f"mesh file {name} is empty")
+    file_format = None
+    if path.suffix.lower() == ".msh":
+        if not head.lstrip().startswith(b"$MeshFormat"):
+            raise ValueError(
+                f"mesh file {name} is not a Gmsh file (no $MeshFormat header); other .msh formats (ANSYS) are "
+                "not read: convert it to .vtu or Gmsh"
+            )
+        file_format = "gmsh"
+    printed = io.StringIO()
+    try:
+        with contextlib.redirect_stdout(printed), contextlib.redirect_stderr(printed):
+            return meshio.read(path, file_format=file_format)
+    except (Exception, SystemExit) as exc:
+        said = " ".join(printed.getvalue().split()) or "no reader accepted it"
+        detail = said if isinstance(exc, SystemExit) else f"{type(exc).__name__}: {exc}"
+        raise ValueError(f"mesh file {name} could not be read (damaged or not a mesh file?): {detail}") from exc
+
+
+def _points(data, path: Path) -> np.ndarray:
+    """The ``(N, 3) float64`` points of a meshio mesh read from ``path``; ValueError naming it otherwise."""
     vertices = np.asarray(data.points, dtype=np.float64)
     if vertices.ndim != 2 or vertices.shape[1] != 3:
         raise ValueError(f"{str(path)!r}: points must be 3-D, got shape {vertices.shape}")
-    return _compact(vertices, tets)
+    return vertices
 
 
 def write_tet_mesh(path: str | Path, mesh: TetMesh, point_data: dict[str, np.ndarray] | None = None) -> None:
     """Write ``mesh`` (and optional per-vertex arrays, e.g. displacement (N,3) m) with meshio.
 
-    The format follows the file extension (``.vtu`` opens in ParaView).
+    The format follows the file extension (``.vtu`` opens in ParaView; ``.msh`` is Gmsh 4.1).
     """
     meshio = _require_meshio()
     point_data = {k: np.asarray(v) for k, v in (point_data or {}).items()}
@@ -81,9 +143,11 @@ def write_tet_mesh(path: str | Path, mesh: TetMesh, point_data: dict[str, np.nda
             raise ValueError(
                 f"point_data[{name!r}] has {len(values)} rows; the mesh has {len(mesh.vertices)} vertices"
             )
+    path = Path(path)
     meshio.write(
-        Path(path),
+        path,
         meshio.Mesh(mesh.vertices, [("tetra", np.asarray(mesh.tets, dtype=np.int64))], point_data=point_data),
+        file_format="gmsh" if path.suffix.lower() == ".msh" else None,
     )
 
 
@@ -98,8 +162,9 @@ def load_surface_mesh(source, scale: float = 1.0):
         ``trimesh.Trimesh`` in metres.
 
     Raises:
-        ValueError: no triangles, non-finite coordinates, non-positive scale, or a surface that is not
-            watertight (open boundary edges or non-manifold edges), naming the file.
+        ValueError: an empty, damaged or unreadable file, no triangles, non-finite coordinates, non-positive
+            scale, or a surface that is not watertight (open boundary edges or non-manifold edges), naming the
+            file.
     """
     import trimesh
 
@@ -109,9 +174,10 @@ def load_surface_mesh(source, scale: float = 1.0):
     if isinstance(source, trimesh.Trimesh):
         surface = source.copy()
     else:
-        if not Path(source).exists():
+        path = Path(source)
+        if not path.exists():
             raise FileNotFoundError(f"surface mesh file {name} does not exist")
-        surface = trimesh.load(source, force="mesh", process=True)
+        surface = _read_surface_file(path)
     if len(surface.faces) == 0:
         raise ValueError(f"surface {name} has no triangles")
     if not np.all(np.isfinite(surface.vertices)):
@@ -126,6 +192,32 @@ def load_surface_mesh(source, scale: float = 1.0):
     if surface.volume < 0:
         surface.invert()
     return surface
+
+
+def _read_surface_file(path: Path):
+    """Load the triangles of ``path`` as a ``trimesh.Trimesh`` (file units); ValueError naming it if unreadable.
+
+    trimesh's own formats are loaded by trimesh; the rest through :func:`_read_meshio` (trimesh would hand them
+    to meshio itself, without the guards against a truncated ``.msh``).
+    """
+    import trimesh
+
+    name = repr(str(path))
+    if path.suffix.lower() not in TRIMESH_FORMATS:
+        data = _read_meshio(path)
+        blocks = [np.asarray(c.data) for c in data.cells if c.type == "triangle"]
+        if not blocks:
+            kinds = sorted({c.type for c in data.cells})
+            raise ValueError(f"surface mesh file {name} holds no 'triangle' cells (found {kinds})")
+        return trimesh.Trimesh(_points(data, path), np.concatenate(blocks), process=True)
+    if path.stat().st_size == 0:
+        raise ValueError(f"surface mesh file {name} is empty")
+    try:
+        return trimesh.load(path, force="mesh", process=True)
+    except Exception as exc:
+        raise ValueError(
+            f"surface mesh file {name} could not be read (damaged or not a mesh file?): {type(exc).__name__}: {exc}"
+        ) from exc
 
 
 def tetrahedralize_surface(source, edge_length: float, backend: str = "auto", scale: float = 1.0) -> TetMesh:
