@@ -152,6 +152,44 @@ def test_bad_actions_raise_and_finite_out_of_box_actions_pass_unchanged():
     assert info["reward_action"] == pytest.approx(-env.config.reward.action * 4.0)
 
 
+@pytest.mark.parametrize(
+    "action",
+    [["0.1"] * 6, np.full(6, "1"), np.full(6, 0.1 + 0.1j), np.array([0.1] * 5 + [None], dtype=object),
+     np.ones(6, dtype=bool)],
+    ids=["str-list", "str-array", "complex", "object", "bool"],
+)
+def test_actions_that_are_not_real_numbers_raise_naming_the_dtype(action):
+    env = _env("SutureGym/NeedleInsert-v0")
+    env.reset(seed=0)
+    with pytest.raises(TypeError, match=f"dtype {np.asarray(action).dtype}"):
+        env.step(action)
+    env.step(np.zeros(6, dtype=np.int64))  # integers are real numbers
+
+
+def test_step_after_the_end_raises_until_reset():
+    env = SutureEnv("needle_insert", config={"termination": {"workspace_margin": 1e-6}})  # starts outside
+    env.reset(seed=0)
+    _, _, terminated, _, info = env.step(np.zeros(6))
+    assert terminated and info["out_of_workspace"]
+    ended = env.get_state()
+    with pytest.raises(RuntimeError, match=r"ended.*call reset\(\)"):
+        env.step(np.zeros(6))
+    env.reset(seed=0)
+    started = env.get_state()
+    env.set_state(ended)
+    with pytest.raises(RuntimeError, match="ended"):
+        env.step(np.zeros(6))
+    env.set_state(started)
+    env.step(np.zeros(6))
+
+
+def test_render_before_reset_raises():
+    env = SutureEnv("needle_insert", render_mode="rgb_array")
+    with pytest.raises(RuntimeError, match=r"call reset\(\) before render\(\)"):
+        env.render()
+    assert SutureEnv("needle_insert").render() is None  # no render mode: nothing to draw, nothing wrong
+
+
 def test_divergence_truncates_with_the_last_finite_observation():
     env = _env("SutureGym/NeedleInsert-v0")
     obs0, _ = env.reset(seed=0)
@@ -159,8 +197,8 @@ def test_divergence_truncates_with_the_last_finite_observation():
     assert truncated and not terminated and info["diverged"]
     assert reward == 0.0 and np.array_equal(obs, obs0)
     assert all(info[f"reward_{t}"] == 0.0 for t in env.task_cls.TERMS)
-    obs, reward, terminated, truncated, info = env.step(np.zeros(6))
-    assert truncated and info["diverged"] and np.all(np.isfinite(obs))
+    with pytest.raises(RuntimeError, match=r"call reset\(\)"):
+        env.step(np.zeros(6))
 
 
 def test_reset_options_are_checked():

@@ -5,8 +5,9 @@ An env is a :class:`~suture_gym.envs.simulation.Simulation` (the physics facade)
 
 Action: ``Box(-1, 1, (6,), float32)``, scaled by the config (:class:`~suture_gym.envs.config.ActionConfig`):
 a wrench on the needle holder, or (``action_mode="pose_delta"``) a change of the holder's target pose reached
-through the virtual coupling. A non-finite action raises ValueError; finite actions outside the box are
-applied as given (wrap in ``gymnasium.wrappers.ClipAction`` to clip them).
+through the virtual coupling. An action that is not real numbers (strings, complex, objects, booleans) raises
+TypeError naming its dtype, a non-finite one ValueError; finite actions outside the box are applied as given
+(wrap in ``gymnasium.wrappers.ClipAction`` to clip them).
 
 Observation: float32 vector laid out in :mod:`suture_gym.envs.spaces` (one row per index, with units), or for
 the goal-conditioned variant a Dict with ``observation``, ``achieved_goal`` and ``desired_goal``.
@@ -16,7 +17,11 @@ Episode end: ``terminated`` on success, on a tear (coupling force above the tear
 ``termination.end_on_miss`` is off) once NeedleInsert or SutureThrow can no longer succeed because the stitch was
 entered or exited off the plan; ``truncated`` with
 ``info["diverged"] = True`` when the simulation diverges (the observation is then the last finite one and
-every reward term 0); the time limit comes from registration (``TimeLimit``).
+every reward term 0); the time limit comes from registration (``TimeLimit``). Once the env has ended an episode
+(``terminated``, or ``truncated`` by a divergence), ``step`` raises RuntimeError until ``reset``; Gymnasium's
+``TimeLimit`` does not stop a step after its own truncation, and cannot be told to without breaking
+``gym.make_vec`` (a spec with ``additional_wrappers`` has no vector entry point). ``render`` before the first
+``reset`` raises RuntimeError too.
 
 ``info`` at every step: ``is_success``, ``punctured``, ``tip_force`` (N), ``haptic_wrench`` (``(6,) float64``
 ``[N, N m]``: the reaction the tissue and thread exert on the needle, about the grip point, at the step's last
@@ -58,6 +63,7 @@ class EnvState:
         target_quat: ``(4,)`` holder target orientation (w, x, y, z).
         last_observation: the last observation returned (the fallback when the simulation diverges).
         rng_state: the bit-generator state of ``np_random``.
+        ended: the episode had ended (``step`` raises until ``reset``).
     """
 
     simulation: SimulationSnapshot
@@ -66,6 +72,7 @@ class EnvState:
     target_quat: np.ndarray
     last_observation: Any
     rng_state: dict
+    ended: bool
 
 
 def _copy_obs(obs):
@@ -117,6 +124,7 @@ class SutureEnv(gym.Env):
         self._target_pos = np.zeros(3)
         self._target_quat = np.array([1.0, 0.0, 0.0, 0.0])
         self._last_obs = None
+        self._ended = False
         self._renderer = None
 
     # ------------------------------------------------------------------------------------------------------
@@ -150,6 +158,7 @@ class SutureEnv(gym.Env):
         self._target_pos, self._target_quat = self.sim.grip_pose()
         obs = self._observation(sim_obs)
         self._last_obs = _copy_obs(obs)
+        self._ended = False
         info = self._info(sim_obs, None, diverged=False)
         info["params"] = params.to_dict()
         info["phase"] = phase
@@ -159,6 +168,8 @@ class SutureEnv(gym.Env):
         """Apply ``action`` for one control period (``solver.substeps`` substeps) and score it."""
         if self._last_obs is None:
             raise RuntimeError("call reset() before step()")
+        if self._ended:
+            raise RuntimeError("the episode has ended (terminated or truncated): call reset() before step()")
         a = self._check_action(action)
         if self.config.action.mode == "wrench":
             self.sim.step(a * self._wrench_scale)
@@ -175,9 +186,11 @@ class SutureEnv(gym.Env):
         if diverged:
             obs = _copy_obs(self._last_obs)
             info = self._info(sim_obs, None, diverged=True)
+            self._ended = True
             return obs, 0.0, False, True, info
         self._last_obs = _copy_obs(obs)
         terminated = outcome.success or outcome.failed
+        self._ended = terminated
         info = self._info(sim_obs, outcome, diverged=False)
         return obs, self._reward(obs, outcome, info), bool(terminated), False, info
 
@@ -185,6 +198,8 @@ class SutureEnv(gym.Env):
         """``(height, width, 3) uint8`` image of the scene (``render_mode="rgb_array"``), else None."""
         if self.render_mode != "rgb_array":
             return None
+        if self._last_obs is None:
+            raise RuntimeError("call reset() before render()")
         from suture_gym.render import SceneRenderer
 
         if self._renderer is None:
@@ -239,6 +254,7 @@ class SutureEnv(gym.Env):
             target_quat=self._target_quat.copy(),
             last_observation=_copy_obs(self._last_obs),
             rng_state=self.np_random.bit_generator.state,
+            ended=self._ended,
         )
 
     def set_state(self, state: EnvState) -> None:
@@ -251,6 +267,7 @@ class SutureEnv(gym.Env):
         self._target_pos = state.target_pos.copy()
         self._target_quat = state.target_quat.copy()
         self._last_obs = _copy_obs(state.last_observation)
+        self._ended = state.ended
         self.np_random.bit_generator.state = state.rng_state
 
     # ------------------------------------------------------------------------------------------------------
@@ -284,7 +301,10 @@ class SutureEnv(gym.Env):
 
     @staticmethod
     def _check_action(action) -> np.ndarray:
-        a = np.asarray(action, dtype=np.float64)
+        a = np.asarray(action)
+        if a.dtype.kind not in "iuf":
+            raise TypeError(f"action must hold real numbers (a float or integer array), got dtype {a.dtype}")
+        a = a.astype(np.float64)
         if a.shape != (6,):
             raise ValueError(f"action must have shape (6,), got {a.shape}")
         if not np.all(np.isfinite(a)):

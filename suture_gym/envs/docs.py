@@ -27,8 +27,8 @@ def _section(title: str, lines: list[str]) -> list[str]:
 def _action_lines(config) -> list[str]:
     a = config.action
     return [
-        "``Box(-1, 1, (6,), float32)``; a non-finite action raises ValueError, finite ones outside the box are "
-        "applied as given.",
+        "``Box(-1, 1, (6,), float32)``; an action that is not real numbers raises TypeError naming its dtype, a "
+        "non-finite one ValueError; finite ones outside the box are applied as given.",
         f"* ``wrench`` (default ``action.mode = {a.mode!r}``): ``[force (3) N, torque (3) N m]`` on the needle "
         f"holder = action times ``({a.max_force} N x3, {a.max_torque} N m x3)``, world frame, torque about the "
         "grip point, held over the env step.",
@@ -95,6 +95,8 @@ def _end_lines(task: type[Task], config) -> list[str]:
         "entered or exited off the plan.",
         f"``truncated`` at the time limit, {task.MAX_EPISODE_STEPS} steps ({seconds:g} s with the default "
         "config), and with ``info['diverged'] = True`` when the simulation diverges.",
+        "After an end the env reports itself (``terminated``, or a divergence), ``step`` raises RuntimeError until "
+        "``reset``.",
     ]
 
 
