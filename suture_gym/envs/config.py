@@ -239,8 +239,7 @@ class ActionConfig(_Section):
     ``pose_delta``: the holder's target pose moves by ``action[:3] * max_translation`` (m, world frame) and
     turns by the rotation vector ``action[3:] * max_rotation`` (rad, world frame, about the grip point) each
     env step; the virtual coupling (spring-damper with the stiffnesses below) pulls the needle towards it.
-    Finite actions outside [-1, 1] are applied as given (scaled linearly, not clipped); wrap the env in
-    :class:`gymnasium.wrappers.ClipAction` to enforce the box.
+    Finite actions outside [-1, 1] are clipped to it, so these scales are the largest command.
     """
 
     SECTION: ClassVar[str] = "action"
