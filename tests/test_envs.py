@@ -185,9 +185,12 @@ def test_actions_that_are_not_real_numbers_raise_naming_the_dtype(action):
     env.step(np.zeros(6, dtype=np.int64))  # integers are real numbers
 
 
-def test_step_after_the_end_raises_until_reset():
-    env = SutureEnv("needle_insert", config={"termination": {"workspace_margin": 1e-6}})  # starts outside
+def test_step_after_the_end_raises_until_reset(monkeypatch):
+    env = SutureEnv("needle_insert")
+    monkeypatch.setattr(env.task_cls, "failure", lambda self, obs, outside, missed: outside)
+    monkeypatch.setattr(env.task_cls, "success", lambda self, obs: False)
     env.reset(seed=0)
+    env.sim.state.needle.body_pos[:] += [0.0, 0.0, 0.05]  # lift the needle out of the workspace
     _, _, terminated, _, info = env.step(np.zeros(6))
     assert terminated and info["out_of_workspace"]
     ended = env.get_state()

@@ -27,13 +27,14 @@ from __future__ import annotations
 
 import contextlib
 import io
+import math
 import os
 import tempfile
 from pathlib import Path
 
 import numpy as np
 
-from suture_gym.sim.mesh import TetMesh, box_tet_grid, signed_volumes
+from suture_gym.sim.mesh import MAX_TETS, TetMesh, box_tet_grid, check_tet_budget, signed_volumes
 
 BACKENDS = ("auto", "tetwild", "voxel")
 
@@ -220,7 +221,8 @@ def _read_surface_file(path: Path):
         ) from exc
 
 
-def tetrahedralize_surface(source, edge_length: float, backend: str = "auto", scale: float = 1.0) -> TetMesh:
+def tetrahedralize_surface(source, edge_length: float, backend: str = "auto", scale: float = 1.0,
+                           max_tets: int = MAX_TETS) -> TetMesh:
     """Fill a closed surface with tetrahedra.
 
     Args:
@@ -228,6 +230,9 @@ def tetrahedralize_surface(source, edge_length: float, backend: str = "auto", sc
         edge_length: target tet edge length in metres (the voxel backend's grid spacing).
         backend: ``"tetwild"``, ``"voxel"``, or ``"auto"`` (tetwild when ``pytetwild`` imports, else voxel).
         scale: factor converting the file's units to metres.
+        max_tets: refuse (ValueError naming ``edge_length`` and ``max_tets``) a fill estimated above this many
+            tets, before it starts: the voxel backend builds the grid over the whole bounding box (5 tets per
+            cell of ``edge_length``); fTetWild's count is estimated as the volume over a regular tet's.
 
     Returns:
         A validated :class:`TetMesh` with positively oriented tets.
@@ -239,6 +244,14 @@ def tetrahedralize_surface(source, edge_length: float, backend: str = "auto", sc
     surface = load_surface_mesh(source, scale=scale)
     if backend == "auto":
         backend = "tetwild" if _tetwild() is not None else "voxel"
+    lo, hi = surface.bounds
+    if backend == "voxel":
+        tets = 5 * math.prod(max(1, math.ceil(float(e) / edge_length)) for e in hi - lo)
+    else:
+        tets = math.ceil(float(surface.volume) / (edge_length**3 / (6.0 * math.sqrt(2.0))))
+    extent = " x ".join(f"{float(e):.3g}" for e in hi - lo)
+    check_tet_budget(tets, f"edge_length = {edge_length:g} m over a {extent} m surface ({backend} backend)",
+                     max_tets, "max_tets")
     if backend == "tetwild":
         pytetwild = _tetwild()
         if pytetwild is None:
@@ -258,7 +271,7 @@ def tetrahedralize_surface(source, edge_length: float, backend: str = "auto", sc
             finally:
                 os.chdir(cwd)
         return _compact(np.asarray(vertices, dtype=np.float64), _orient(vertices, np.asarray(tets)))
-    return _voxel_tets(surface, float(edge_length))
+    return _voxel_tets(surface, float(edge_length), max_tets)
 
 
 def _tetwild():
@@ -269,13 +282,13 @@ def _tetwild():
     return pytetwild
 
 
-def _voxel_tets(surface, spacing: float) -> TetMesh:
+def _voxel_tets(surface, spacing: float, max_tets: int) -> TetMesh:
     """Keep the cells of a structured tet grid whose centres lie inside ``surface``."""
     lo, hi = surface.bounds
     cells = np.maximum(np.ceil((hi - lo) / spacing).astype(int), 1)
     size = cells * spacing
     origin = lo - 0.5 * (size - (hi - lo))
-    grid = box_tet_grid(size=tuple(size), cells=tuple(int(c) for c in cells), origin=tuple(origin))
+    grid = box_tet_grid(size=tuple(size), cells=tuple(int(c) for c in cells), origin=tuple(origin), max_tets=max_tets)
     cell_of_tet = np.floor((grid.vertices[grid.tets].mean(axis=1) - origin) / spacing).astype(np.int64)
     cell_of_tet = np.clip(cell_of_tet, 0, cells - 1)
     flat = np.ravel_multi_index(cell_of_tet.T, tuple(cells))
