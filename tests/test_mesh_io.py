@@ -1,5 +1,9 @@
 """Mesh files and tetrahedralisation: meshio round trips, trimesh surfaces, bad files named in errors."""
 
+import json
+import os
+from pathlib import Path
+
 import numpy as np
 import pytest
 import trimesh
@@ -181,3 +185,51 @@ def test_surface_from_a_meshio_format_loads(tmp_path):
     surface = load_surface_mesh(tmp_path / "box.vtu")
     assert surface.is_watertight
     assert surface.volume == pytest.approx(8e-6)
+
+
+FAKE_TETWILD = '''
+import json
+import os
+
+import numpy as np
+
+
+def tetrahedralize(vertices, faces, edge_length_abs, num_threads):
+    """Stands in for fTetWild: writes its debug file into the working directory, records where and in which
+    process it ran, and fills the surface's bounding box with one tet."""
+    open("__tracked_surface.stl", "w").close()
+    with open(os.environ["FAKE_TETWILD_LOG"], "w") as log:
+        json.dump({"pid": os.getpid(), "cwd": os.getcwd()}, log)
+    lo, hi = vertices.min(axis=0), vertices.max(axis=0)
+    corners = np.array([lo, [hi[0], lo[1], lo[2]], [lo[0], hi[1], lo[2]], [lo[0], lo[1], hi[2]]])
+    return corners, np.array([[0, 1, 2, 3]])
+'''
+
+
+def test_tetwild_runs_in_a_scratch_directory_of_another_process(tmp_path, monkeypatch):
+    fake = tmp_path / "fake"
+    fake.mkdir()
+    (fake / "pytetwild.py").write_text(FAKE_TETWILD)
+    monkeypatch.syspath_prepend(str(fake))
+    monkeypatch.setenv("PYTHONPATH", os.pathsep.join([str(fake), os.environ.get("PYTHONPATH", "")]))
+    monkeypatch.setenv("FAKE_TETWILD_LOG", str(tmp_path / "log.json"))
+    work = tmp_path / "work"
+    work.mkdir()
+    monkeypatch.chdir(work)
+    mesh = tetrahedralize_surface(trimesh.creation.box(extents=(0.02, 0.02, 0.02)), edge_length=0.01, backend="tetwild")
+    assert mesh.tet_count == 1
+    ran = json.loads((tmp_path / "log.json").read_text())
+    assert ran["pid"] != os.getpid()  # os.chdir in this process would move every thread's working directory
+    assert Path(ran["cwd"]).resolve() != work.resolve()
+    assert os.getcwd() == str(work) and list(work.iterdir()) == []
+    assert not Path(ran["cwd"]).exists()  # the scratch directory is removed
+
+
+def test_a_failing_tetwild_raises_with_its_error_output(tmp_path, monkeypatch):
+    fake = tmp_path / "fake"
+    fake.mkdir()
+    (fake / "pytetwild.py").write_text("def tetrahedralize(*args, **kwargs):\n    raise MemoryError('out of memory')\n")
+    monkeypatch.syspath_prepend(str(fake))
+    monkeypatch.setenv("PYTHONPATH", os.pathsep.join([str(fake), os.environ.get("PYTHONPATH", "")]))
+    with pytest.raises(RuntimeError, match=r"(?s)fTetWild failed \(exit status 1\).*MemoryError: out of memory"):
+        tetrahedralize_surface(trimesh.creation.box(extents=(0.02, 0.02, 0.02)), edge_length=0.01, backend="tetwild")

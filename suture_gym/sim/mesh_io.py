@@ -6,7 +6,9 @@
   two backends:
 
   ``"tetwild"``  fTetWild through ``pytetwild`` (optional ``mesh`` extra; MPL-2.0). Good-quality tets that
-                 follow the surface; the paper's meshes were made with TetWild.
+                 follow the surface; the paper's meshes were made with TetWild. It runs in a child Python
+                 process in a scratch directory: fTetWild writes a debug file into the working directory, and
+                 the caller's must neither receive it nor change (``os.chdir`` is process-wide).
   ``"voxel"``    built in, no extra dependency: the structured tet grid of :func:`~suture_gym.sim.mesh.box_tet_grid`
                  over the surface's bounding box, keeping the cells whose centre lies inside. The boundary is a
                  staircase at the grid spacing; use it for quick experiments and tests.
@@ -26,9 +28,11 @@ they are opened.
 from __future__ import annotations
 
 import contextlib
+import importlib.util
 import io
 import math
-import os
+import subprocess
+import sys
 import tempfile
 from pathlib import Path
 
@@ -228,7 +232,7 @@ def tetrahedralize_surface(source, edge_length: float, backend: str = "auto", sc
     Args:
         source: path or ``trimesh.Trimesh`` of a closed surface (see :func:`load_surface_mesh`).
         edge_length: target tet edge length in metres (the voxel backend's grid spacing).
-        backend: ``"tetwild"``, ``"voxel"``, or ``"auto"`` (tetwild when ``pytetwild`` imports, else voxel).
+        backend: ``"tetwild"``, ``"voxel"``, or ``"auto"`` (tetwild when ``pytetwild`` is installed, else voxel).
         scale: factor converting the file's units to metres.
         max_tets: refuse (ValueError naming ``edge_length`` and ``max_tets``) a fill estimated above this many
             tets, before it starts: the voxel backend builds the grid over the whole bounding box (5 tets per
@@ -243,7 +247,7 @@ def tetrahedralize_surface(source, edge_length: float, backend: str = "auto", sc
         raise ValueError(f"edge_length must be a positive finite length in metres, got {edge_length!r}")
     surface = load_surface_mesh(source, scale=scale)
     if backend == "auto":
-        backend = "tetwild" if _tetwild() is not None else "voxel"
+        backend = "tetwild" if _tetwild_installed() else "voxel"
     lo, hi = surface.bounds
     if backend == "voxel":
         tets = 5 * math.prod(max(1, math.ceil(float(e) / edge_length)) for e in hi - lo)
@@ -253,33 +257,42 @@ def tetrahedralize_surface(source, edge_length: float, backend: str = "auto", sc
     check_tet_budget(tets, f"edge_length = {edge_length:g} m over a {extent} m surface ({backend} backend)",
                      max_tets, "max_tets")
     if backend == "tetwild":
-        pytetwild = _tetwild()
-        if pytetwild is None:
+        if not _tetwild_installed():
             raise ImportError("backend 'tetwild' needs pytetwild: pip install 'suture_gym[mesh]'")
-        # fTetWild writes a debug file (``__tracked_surface.stl``) into the working directory: run it in a
-        # scratch directory so nothing lands in the user's tree.
-        cwd = os.getcwd()
-        with tempfile.TemporaryDirectory(prefix="suture_gym_tetwild_") as scratch:
-            os.chdir(scratch)
-            try:
-                vertices, tets = pytetwild.tetrahedralize(
-                    np.asarray(surface.vertices, dtype=np.float64),
-                    np.asarray(surface.faces, dtype=np.int32),
-                    edge_length_abs=float(edge_length),
-                    num_threads=1,
-                )
-            finally:
-                os.chdir(cwd)
-        return _compact(np.asarray(vertices, dtype=np.float64), _orient(vertices, np.asarray(tets)))
+        vertices, tets = _run_tetwild(np.asarray(surface.vertices, dtype=np.float64),
+                                      np.asarray(surface.faces, dtype=np.int32), float(edge_length))
+        return _compact(vertices, _orient(vertices, tets))
     return _voxel_tets(surface, float(edge_length), max_tets)
 
 
-def _tetwild():
-    try:
-        import pytetwild
-    except ImportError:
-        return None
-    return pytetwild
+def _tetwild_installed() -> bool:
+    """Whether ``pytetwild`` can be imported (found without importing it: it imports pyvista and VTK)."""
+    return importlib.util.find_spec("pytetwild") is not None
+
+
+#: The child process of :func:`_run_tetwild`: reads ``surface.npz`` and writes ``tets.npz`` in its working directory.
+_TETWILD_CHILD = """
+import numpy as np
+import pytetwild
+
+surface = np.load("surface.npz")
+vertices, tets = pytetwild.tetrahedralize(surface["vertices"], surface["faces"],
+                                          edge_length_abs=float(surface["edge_length"]), num_threads=1)
+np.savez("tets.npz", vertices=np.asarray(vertices, dtype=np.float64), tets=np.asarray(tets, dtype=np.int64))
+"""
+
+
+def _run_tetwild(vertices: np.ndarray, faces: np.ndarray, edge_length: float) -> tuple[np.ndarray, np.ndarray]:
+    """fTetWild on the surface ``vertices`` (V, 3) m, ``faces`` (F, 3), in a child process whose working directory
+    is a scratch directory (fTetWild writes ``__tracked_surface.stl`` there); returns ``(vertices (N, 3) m,
+    tets (T, 4))``. RuntimeError with the child's error output if it fails."""
+    with tempfile.TemporaryDirectory(prefix="suture_gym_tetwild_") as scratch:
+        np.savez(Path(scratch) / "surface.npz", vertices=vertices, faces=faces, edge_length=edge_length)
+        done = subprocess.run([sys.executable, "-c", _TETWILD_CHILD], cwd=scratch, capture_output=True, text=True)
+        if done.returncode != 0:
+            raise RuntimeError(f"fTetWild failed (exit status {done.returncode}): {done.stderr.strip()[-2000:]}")
+        with np.load(Path(scratch) / "tets.npz") as result:
+            return result["vertices"], result["tets"]
 
 
 def _voxel_tets(surface, spacing: float, max_tets: int) -> TetMesh:
