@@ -5,6 +5,7 @@ divergence, start phases, privileged observations, pose-delta mode, goal rewards
 import itertools
 import math
 import warnings
+from dataclasses import replace
 from pathlib import Path
 
 import gymnasium as gym
@@ -138,7 +139,7 @@ def test_snapshot_restore_replays_identically(env_id):
         env.set_state("not a state")
 
 
-def test_bad_actions_raise_and_finite_out_of_box_actions_pass_unchanged():
+def test_non_finite_and_misshapen_actions_raise():
     env = _env("SutureGym/NeedleInsert-v1")
     env.reset(seed=0)
     with pytest.raises(ValueError, match=r"finite.*\[2\]"):
@@ -147,20 +148,110 @@ def test_bad_actions_raise_and_finite_out_of_box_actions_pass_unchanged():
         env.step(np.array([np.inf, 0.0, 0.0, 0.0, 0.0, -np.inf]))
     with pytest.raises(ValueError, match="shape"):
         env.step(np.zeros(5))
-    a = np.full(6, 2.0)
-    _, reward, *_, info = env.step(a)
-    assert info["reward_action"] == pytest.approx(-env.config.reward.action * 4.0)
 
 
-def test_divergence_truncates_with_the_last_finite_observation():
+@pytest.mark.parametrize("action_mode", ["wrench", "pose_delta"])
+def test_actions_outside_the_box_act_as_the_box_edge(action_mode):
+    env = SutureEnv("needle_insert", action_mode=action_mode)
+    env.reset(seed=0)
+    for _ in range(3):
+        env.step(np.full(6, 0.2))
+    start = env.get_state()
+    edge = np.array([1.0, -1.0, 1.0, 0.5, -1.0, 1.0])
+    extreme = np.array([1e6, -1e9, 3.0, 0.5, -1.0 - 1e-9, 1e300])
+    runs = []
+    for action in (edge, extreme):
+        env.set_state(start)
+        out = []
+        for _ in range(3):
+            obs, reward, terminated, truncated, info = env.step(action)
+            out.append((obs.tobytes(), reward, terminated, truncated, _plain(info)))
+        runs.append(out)
+    assert runs[0] == runs[1]
+    info = dict(runs[1][0][4])
+    assert not info["diverged"] and info["reward_action"] == pytest.approx(-env.config.reward.action * np.mean(edge**2))
+
+@pytest.mark.parametrize(
+    "action",
+    [["0.1"] * 6, np.full(6, "1"), np.full(6, 0.1 + 0.1j), np.array([0.1] * 5 + [None], dtype=object),
+     np.ones(6, dtype=bool)],
+    ids=["str-list", "str-array", "complex", "object", "bool"],
+)
+def test_actions_that_are_not_real_numbers_raise_naming_the_dtype(action):
+    env = _env("SutureGym/NeedleInsert-v1")
+    env.reset(seed=0)
+    with pytest.raises(TypeError, match=f"dtype {np.asarray(action).dtype}"):
+        env.step(action)
+    env.step(np.zeros(6, dtype=np.int64))  # integers are real numbers
+
+
+def test_step_after_the_end_raises_until_reset(monkeypatch):
+    env = SutureEnv("needle_insert")
+    monkeypatch.setattr(env.task_cls, "failure", lambda self, obs, outside, missed: outside)
+    monkeypatch.setattr(env.task_cls, "success", lambda self, obs: False)
+    env.reset(seed=0)
+    env.sim.state.needle.body_pos[:] += [0.0, 0.0, 0.05]  # lift the needle out of the workspace
+    _, _, terminated, _, info = env.step(np.zeros(6))
+    assert terminated and info["out_of_workspace"]
+    ended = env.get_state()
+    with pytest.raises(RuntimeError, match=r"ended.*call reset\(\)"):
+        env.step(np.zeros(6))
+    env.reset(seed=0)
+    started = env.get_state()
+    env.set_state(ended)
+    with pytest.raises(RuntimeError, match="ended"):
+        env.step(np.zeros(6))
+    env.set_state(started)
+    env.step(np.zeros(6))
+
+
+def test_render_before_reset_raises():
+    env = SutureEnv("needle_insert", render_mode="rgb_array")
+    with pytest.raises(RuntimeError, match=r"call reset\(\) before render\(\)"):
+        env.render()
+    assert SutureEnv("needle_insert").render() is None  # no render mode: nothing to draw, nothing wrong
+
+
+def _diverge(env):
+    """Make the next substep's prediction non-finite, as a blown-up solve would."""
+    env.sim.state.tissue.particle_qd[:] = np.nan
+
+
+@pytest.mark.parametrize("env_id", ["SutureGym/NeedleInsert-v1", "SutureGym/NeedleInsertGoal-v1"])
+def test_divergence_is_a_failure_with_the_last_finite_observation(env_id):
+    env = _env(env_id)
+    env.reset(seed=0, options={"phase": "inserted"})
+    obs0, *_ = env.step(np.zeros(6, np.float32))
+    potential = env.task.state.potential
+    assert potential > 0.0
+    _diverge(env)
+    obs, reward, terminated, truncated, info = env.step(np.zeros(6, np.float32))
+    assert terminated and not truncated and info["diverged"] and not info["is_success"]
+    w = env.config.reward
+    assert info["reward_failure"] == -w.failure
+    if isinstance(env, SutureGoalEnv):
+        assert np.array_equal(obs["observation"], obs0["observation"])
+        assert reward == env.compute_reward(obs["achieved_goal"], obs["desired_goal"], info)
+    else:
+        assert np.array_equal(obs, obs0)
+        assert info["reward_progress"] == -w.progress * potential
+        assert reward == -w.failure - w.progress * potential
+        others = [t for t in env.task_cls.TERMS if t not in ("failure", "progress")]
+        assert all(info[f"reward_{t}"] == 0.0 for t in others)
+    with pytest.raises(RuntimeError, match=r"call reset\(\)"):
+        env.step(np.zeros(6, np.float32))
+
+
+def test_a_non_finite_observation_is_a_divergence_and_leaves_the_task_as_it_was(monkeypatch):
     env = _env("SutureGym/NeedleInsert-v1")
     obs0, _ = env.reset(seed=0)
-    obs, reward, terminated, truncated, info = env.step(np.full(6, 1e9, dtype=np.float64))
-    assert truncated and not terminated and info["diverged"]
-    assert reward == 0.0 and np.array_equal(obs, obs0)
-    assert all(info[f"reward_{t}"] == 0.0 for t in env.task_cls.TERMS)
-    obs, reward, terminated, truncated, info = env.step(np.zeros(6))
-    assert truncated and info["diverged"] and np.all(np.isfinite(obs))
+    before = env.task.get_state()
+    observables = env.sim.observables
+    monkeypatch.setattr(env.sim, "observables", lambda: replace(observables(), tip_force=float("nan")))
+    obs, reward, terminated, truncated, info = env.step(np.zeros(6, np.float32))
+    assert terminated and info["diverged"] and np.array_equal(obs, obs0)
+    assert reward == -env.config.reward.failure and info["tip_force"] == 0.0
+    assert env.task.state.stitch == before.stitch and env.task.state.potential == 0.0
 
 
 def test_reset_options_are_checked():

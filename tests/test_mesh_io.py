@@ -1,5 +1,9 @@
 """Mesh files and tetrahedralisation: meshio round trips, trimesh surfaces, bad files named in errors."""
 
+import json
+import os
+from pathlib import Path
+
 import numpy as np
 import pytest
 import trimesh
@@ -109,3 +113,123 @@ def test_tetwild_backend_follows_the_surface():
     assert np.all(signed_volumes(mesh.vertices, mesh.tets) > 0)
     volume = signed_volumes(mesh.vertices, mesh.tets).sum()
     assert abs(volume - sphere.volume) / sphere.volume < 0.03
+
+
+def _gmsh_file(path):
+    mesh = box_tet_grid(size=(0.02, 0.01, 0.01), cells=(2, 1, 1))
+    write_tet_mesh(path, mesh)
+    return path.read_bytes()
+
+
+def test_msh_is_written_as_gmsh_and_read_back(tmp_path):
+    data = _gmsh_file(tmp_path / "m.msh")
+    assert data.startswith(b"$MeshFormat")
+    assert read_tet_mesh(tmp_path / "m.msh").tet_count == 10
+
+
+@pytest.mark.parametrize("fraction", [0.3, 0.6, 0.9])
+def test_truncated_msh_names_the_file(tmp_path, fraction):
+    data = _gmsh_file(tmp_path / "m.msh")
+    (tmp_path / "cut.msh").write_bytes(data[: int(len(data) * fraction)])
+    with pytest.raises(ValueError, match=r"cut\.msh.*could not be read"):
+        read_tet_mesh(tmp_path / "cut.msh")
+
+
+def test_non_gmsh_msh_is_refused_by_name(tmp_path):
+    (tmp_path / "fluent.msh").write_text('(0 "ANSYS mesh")\n(10 (0 1 8 0 3))\n(10 (1 1 8 1 3)(\n0 0 0\n')
+    with pytest.raises(ValueError, match=r"fluent\.msh.*not a Gmsh file"):
+        read_tet_mesh(tmp_path / "fluent.msh")
+
+
+@pytest.mark.parametrize("name", ["garbage.vtu", "garbage.vtk", "garbage.mesh", "empty.vtu", "empty.vtk"])
+def test_unreadable_tet_file_raises_value_error_not_system_exit(tmp_path, name, capsys):
+    (tmp_path / name).write_bytes(b"" if name.startswith("empty") else b"not a mesh \x00\xff\xfe\n" * 8)
+    with pytest.raises(ValueError, match=name.replace(".", r"\.")):
+        read_tet_mesh(tmp_path / name)
+    assert capsys.readouterr().out == ""  # meshio's complaints are in the message, not on stdout
+
+
+def test_truncated_ply_is_refused_by_the_tet_reader(tmp_path):
+    path = tmp_path / "cut.ply"
+    trimesh.creation.box(extents=(0.02, 0.02, 0.02)).export(path)
+    path.write_bytes(path.read_bytes()[:20])  # meshio's PLY reader loops forever on this
+    with pytest.raises(ValueError, match=r"cut\.ply.*holds no tetrahedra"):
+        read_tet_mesh(path)
+
+
+def test_invalid_mesh_in_a_file_names_the_file(tmp_path):
+    mesh = box_tet_grid(size=(0.02, 0.01, 0.01), cells=(2, 1, 1))
+    tets = mesh.tets.astype(np.int64).copy()
+    tets[3, [1, 2]] = tets[3, [2, 1]]
+    meshio.write(tmp_path / "flipped.vtu", meshio.Mesh(mesh.vertices, [("tetra", tets)]))
+    with pytest.raises(ValueError, match=r"flipped\.vtu.*tet 3"):
+        read_tet_mesh(tmp_path / "flipped.vtu")
+
+
+@pytest.mark.parametrize("name", ["garbage.obj", "garbage.stl", "garbage.off", "garbage.vtu", "cut.msh", "empty.ply"])
+def test_unreadable_surface_file_names_the_file(tmp_path, name):
+    if name == "cut.msh":
+        data = _gmsh_file(tmp_path / "m.msh")[:300]
+    elif name.startswith("empty"):
+        data = b""
+    else:
+        data = b"not a mesh \x00\xff\xfe\n" * 8
+    (tmp_path / name).write_bytes(data)
+    with pytest.raises(ValueError, match=name.replace(".", r"\.")):
+        load_surface_mesh(tmp_path / name)
+
+
+def test_surface_from_a_meshio_format_loads(tmp_path):
+    box = trimesh.creation.box(extents=(0.02, 0.02, 0.02))
+    meshio.write(tmp_path / "box.vtu", meshio.Mesh(box.vertices, [("triangle", box.faces)]))
+    surface = load_surface_mesh(tmp_path / "box.vtu")
+    assert surface.is_watertight
+    assert surface.volume == pytest.approx(8e-6)
+
+
+FAKE_TETWILD = '''
+import json
+import os
+
+import numpy as np
+
+
+def tetrahedralize(vertices, faces, edge_length_abs, num_threads):
+    """Stands in for fTetWild: writes its debug file into the working directory, records where and in which
+    process it ran, and fills the surface's bounding box with one tet."""
+    open("__tracked_surface.stl", "w").close()
+    with open(os.environ["FAKE_TETWILD_LOG"], "w") as log:
+        json.dump({"pid": os.getpid(), "cwd": os.getcwd()}, log)
+    lo, hi = vertices.min(axis=0), vertices.max(axis=0)
+    corners = np.array([lo, [hi[0], lo[1], lo[2]], [lo[0], hi[1], lo[2]], [lo[0], lo[1], hi[2]]])
+    return corners, np.array([[0, 1, 2, 3]])
+'''
+
+
+def test_tetwild_runs_in_a_scratch_directory_of_another_process(tmp_path, monkeypatch):
+    fake = tmp_path / "fake"
+    fake.mkdir()
+    (fake / "pytetwild.py").write_text(FAKE_TETWILD)
+    monkeypatch.syspath_prepend(str(fake))
+    monkeypatch.setenv("PYTHONPATH", os.pathsep.join([str(fake), os.environ.get("PYTHONPATH", "")]))
+    monkeypatch.setenv("FAKE_TETWILD_LOG", str(tmp_path / "log.json"))
+    work = tmp_path / "work"
+    work.mkdir()
+    monkeypatch.chdir(work)
+    mesh = tetrahedralize_surface(trimesh.creation.box(extents=(0.02, 0.02, 0.02)), edge_length=0.01, backend="tetwild")
+    assert mesh.tet_count == 1
+    ran = json.loads((tmp_path / "log.json").read_text())
+    assert ran["pid"] != os.getpid()  # os.chdir in this process would move every thread's working directory
+    assert Path(ran["cwd"]).resolve() != work.resolve()
+    assert os.getcwd() == str(work) and list(work.iterdir()) == []
+    assert not Path(ran["cwd"]).exists()  # the scratch directory is removed
+
+
+def test_a_failing_tetwild_raises_with_its_error_output(tmp_path, monkeypatch):
+    fake = tmp_path / "fake"
+    fake.mkdir()
+    (fake / "pytetwild.py").write_text("def tetrahedralize(*args, **kwargs):\n    raise MemoryError('out of memory')\n")
+    monkeypatch.syspath_prepend(str(fake))
+    monkeypatch.setenv("PYTHONPATH", os.pathsep.join([str(fake), os.environ.get("PYTHONPATH", "")]))
+    with pytest.raises(RuntimeError, match=r"(?s)fTetWild failed \(exit status 1\).*MemoryError: out of memory"):
+        tetrahedralize_surface(trimesh.creation.box(extents=(0.02, 0.02, 0.02)), edge_length=0.01, backend="tetwild")

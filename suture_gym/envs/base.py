@@ -5,18 +5,25 @@ An env is a :class:`~suture_gym.envs.simulation.Simulation` (the physics facade)
 
 Action: ``Box(-1, 1, (6,), float32)``, scaled by the config (:class:`~suture_gym.envs.config.ActionConfig`):
 a wrench on the needle holder, or (``action_mode="pose_delta"``) a change of the holder's target pose reached
-through the virtual coupling. A non-finite action raises ValueError; finite actions outside the box are
-applied as given (wrap in ``gymnasium.wrappers.ClipAction`` to clip them).
+through the virtual coupling. An action that is not real numbers (strings, complex, objects, booleans) raises
+TypeError naming its dtype, a non-finite one ValueError; finite actions outside the box are clipped to it (a
+component of 1e6 acts, and is penalised, as 1).
 
 Observation: float32 vector laid out in :mod:`suture_gym.envs.spaces` (one row per index, with units), or for
 the goal-conditioned variant a Dict with ``observation``, ``achieved_goal`` and ``desired_goal``.
 
 Episode end: ``terminated`` on success, on a tear (coupling force above the tear force, unless
-``termination.end_on_tear`` is off), when the tip leaves the workspace, and (flat ids, unless
+``termination.end_on_tear`` is off), when the tip leaves the workspace, (flat ids, unless
 ``termination.end_on_miss`` is off) once NeedleInsert or SutureThrow can no longer succeed because the stitch was
-entered or exited off the plan; ``truncated`` with
-``info["diverged"] = True`` when the simulation diverges (the observation is then the last finite one and
-every reward term 0); the time limit comes from registration (``TimeLimit``).
+entered or exited off the plan, and when the simulation diverges (the solver's flag: a non-finite position or a
+speed above ``solver.max_speed``; or a non-finite observation or reward): a failure like a tear, with
+``info["diverged"] = True``, the last finite observation, and the failure terms of
+:meth:`~suture_gym.tasks.Task.diverged` (``-w_failure`` and the banked progress handed back, every other term 0).
+``truncated`` at the time limit, which comes from registration (``TimeLimit``). Once the env has ended an
+episode (``terminated``), ``step`` raises RuntimeError until ``reset``; Gymnasium's
+``TimeLimit`` does not stop a step after its own truncation, and cannot be told to without breaking
+``gym.make_vec`` (a spec with ``additional_wrappers`` has no vector entry point). ``render`` before the first
+``reset`` raises RuntimeError too.
 
 ``info`` at every step: ``is_success``, ``punctured``, ``tip_force`` (N), ``haptic_wrench`` (``(6,) float64``
 ``[N, N m]``: the reaction the tissue and thread exert on the needle, about the grip point, at the step's last
@@ -58,6 +65,7 @@ class EnvState:
         target_quat: ``(4,)`` holder target orientation (w, x, y, z).
         last_observation: the last observation returned (the fallback when the simulation diverges).
         rng_state: the bit-generator state of ``np_random``.
+        ended: the episode had ended (``step`` raises until ``reset``).
     """
 
     simulation: SimulationSnapshot
@@ -66,6 +74,7 @@ class EnvState:
     target_quat: np.ndarray
     last_observation: Any
     rng_state: dict
+    ended: bool
 
 
 def _copy_obs(obs):
@@ -117,6 +126,7 @@ class SutureEnv(gym.Env):
         self._target_pos = np.zeros(3)
         self._target_quat = np.array([1.0, 0.0, 0.0, 0.0])
         self._last_obs = None
+        self._ended = False
         self._renderer = None
 
     # ------------------------------------------------------------------------------------------------------
@@ -150,7 +160,8 @@ class SutureEnv(gym.Env):
         self._target_pos, self._target_quat = self.sim.grip_pose()
         obs = self._observation(sim_obs)
         self._last_obs = _copy_obs(obs)
-        info = self._info(sim_obs, None, diverged=False)
+        self._ended = False
+        info = self._info(sim_obs, obs, None, diverged=False)
         info["params"] = params.to_dict()
         info["phase"] = phase
         return obs, info
@@ -159,6 +170,8 @@ class SutureEnv(gym.Env):
         """Apply ``action`` for one control period (``solver.substeps`` substeps) and score it."""
         if self._last_obs is None:
             raise RuntimeError("call reset() before step()")
+        if self._ended:
+            raise RuntimeError("the episode has ended (terminated): call reset() before step()")
         a = self._check_action(action)
         if self.config.action.mode == "wrench":
             self.sim.step(a * self._wrench_scale)
@@ -169,22 +182,30 @@ class SutureEnv(gym.Env):
             self._target_quat = quat_normalize(quat_mul(turn, self._target_quat))
             self.sim.step_toward(self._target_pos, self._target_quat)
         sim_obs = self.sim.observables()
-        outcome = self.task.step(sim_obs, a)
-        obs = self._observation(sim_obs)
-        diverged = sim_obs.diverged or not self._finite(obs) or not math.isfinite(outcome.reward)
+        diverged = sim_obs.diverged
+        if not diverged:
+            before = self.task.get_state()
+            outcome = self.task.step(sim_obs, a)
+            obs = self._observation(sim_obs)
+            diverged = not self._finite(obs) or not math.isfinite(outcome.reward)
+            if diverged:
+                self.task.set_state(before)
         if diverged:
+            outcome = self.task.diverged()
             obs = _copy_obs(self._last_obs)
-            info = self._info(sim_obs, None, diverged=True)
-            return obs, 0.0, False, True, info
-        self._last_obs = _copy_obs(obs)
+        else:
+            self._last_obs = _copy_obs(obs)
         terminated = outcome.success or outcome.failed
-        info = self._info(sim_obs, outcome, diverged=False)
+        self._ended = terminated
+        info = self._info(sim_obs, obs, outcome, diverged)
         return obs, self._reward(obs, outcome, info), bool(terminated), False, info
 
     def render(self):
         """``(height, width, 3) uint8`` image of the scene (``render_mode="rgb_array"``), else None."""
         if self.render_mode != "rgb_array":
             return None
+        if self._last_obs is None:
+            raise RuntimeError("call reset() before render()")
         from suture_gym.render import SceneRenderer
 
         if self._renderer is None:
@@ -239,6 +260,7 @@ class SutureEnv(gym.Env):
             target_quat=self._target_quat.copy(),
             last_observation=_copy_obs(self._last_obs),
             rng_state=self.np_random.bit_generator.state,
+            ended=self._ended,
         )
 
     def set_state(self, state: EnvState) -> None:
@@ -251,6 +273,7 @@ class SutureEnv(gym.Env):
         self._target_pos = state.target_pos.copy()
         self._target_quat = state.target_quat.copy()
         self._last_obs = _copy_obs(state.last_observation)
+        self._ended = state.ended
         self.np_random.bit_generator.state = state.rng_state
 
     # ------------------------------------------------------------------------------------------------------
@@ -284,13 +307,16 @@ class SutureEnv(gym.Env):
 
     @staticmethod
     def _check_action(action) -> np.ndarray:
-        a = np.asarray(action, dtype=np.float64)
+        a = np.asarray(action)
+        if a.dtype.kind not in "iuf":
+            raise TypeError(f"action must hold real numbers (a float or integer array), got dtype {a.dtype}")
+        a = a.astype(np.float64)
         if a.shape != (6,):
             raise ValueError(f"action must have shape (6,), got {a.shape}")
         if not np.all(np.isfinite(a)):
             bad = [i for i in range(6) if not math.isfinite(a[i])]
             raise ValueError(f"action must be finite; components {bad} are {[float(a[i]) for i in bad]}")
-        return a
+        return np.clip(a, -1.0, 1.0)
 
     @staticmethod
     def _finite(obs) -> bool:
@@ -341,7 +367,9 @@ class SutureEnv(gym.Env):
     def _observation(self, o: Observables):
         return self._vector(o)
 
-    def _info(self, o: Observables, outcome, diverged: bool) -> dict:
+    def _info(self, o: Observables, obs, outcome, diverged: bool) -> dict:
+        """The step's ``info`` from the observables ``o``, the observation returned ``obs``, the task's outcome
+        (None at reset) and whether the simulation diverged."""
         terms = self._term_names()
         info = {
             "is_success": bool(outcome.success) if outcome is not None else False,
@@ -409,12 +437,10 @@ class SutureGoalEnv(SutureEnv):
     def _term_names(self) -> tuple[str, ...]:
         return self.task_cls.GOAL_TERMS
 
-    def _info(self, o: Observables, outcome, diverged: bool) -> dict:
-        info = super()._info(o, outcome, diverged)
+    def _info(self, o: Observables, obs, outcome, diverged: bool) -> dict:
+        info = super()._info(o, obs, outcome, diverged)
         if outcome is not None:
-            achieved = self.task.achieved_goal(o).astype(np.float32)[None, :]
-            desired = self.task.desired_goal().astype(np.float32)[None, :]
-            info["reward_goal"] = float(self._goal_term(achieved, desired)[0])
+            info["reward_goal"] = float(self._goal_term(obs["achieved_goal"][None, :], obs["desired_goal"][None, :])[0])
         return info
 
     def _reward(self, obs, outcome, info) -> float:

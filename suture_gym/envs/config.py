@@ -24,13 +24,15 @@ import os
 import re
 import types
 import typing
+import warnings
 from dataclasses import dataclass, field, fields, is_dataclass, replace
 from pathlib import Path
 from typing import Any, ClassVar
 
 from suture_gym.envs.registry import task_class
 from suture_gym.sim.coupling import CouplingParams
-from suture_gym.sim.model import TissueMaterial
+from suture_gym.sim.mesh import BYTES_PER_TET_IMPLICIT, BYTES_PER_TET_XPBD, check_tet_budget
+from suture_gym.sim.model import VALIDATED_YOUNGS_MODULUS, TissueMaterial
 from suture_gym.sim.needle import NeedleShape, VirtualCoupling
 from suture_gym.sim.rod import SutureParams
 from suture_gym.sim.solver import Solver
@@ -41,6 +43,9 @@ ACTION_MODES: tuple[str, ...] = ("wrench", "pose_delta")
 SCENE_KINDS: tuple[str, ...] = ("pad", "wound")
 #: Goal rewards of the goal-conditioned variants.
 GOAL_REWARDS: tuple[str, ...] = ("sparse", "dense")
+#: Largest ``solver.dt``, s: ten times the 1 ms the environments are validated at (the physics checks use
+#: 0.25-1 ms); at larger substeps contacts and punctures are no longer resolved.
+MAX_DT = 0.01
 
 
 def _fail(path: str, message: str) -> None:
@@ -110,6 +115,16 @@ class TissueConfig(TissueMaterial):
     youngs_modulus: float = 3.0e5  # Pa
     poisson_ratio: float = 0.45  # dimensionless, [0, 0.5]
 
+    def __post_init__(self) -> None:
+        super().__post_init__()
+        low, high = VALIDATED_YOUNGS_MODULUS
+        if not low <= self.youngs_modulus <= high:
+            warnings.warn(
+                f"tissue.youngs_modulus = {self.youngs_modulus:g} Pa is outside the range the simulator is validated "
+                f"for ({low:g}-{high:g} Pa)",
+                stacklevel=2,
+            )
+
 
 @dataclass(frozen=True)
 class SceneConfig(_Section):
@@ -118,7 +133,10 @@ class SceneConfig(_Section):
     ``pad``: one block ``x in [0, size_x]``, ``y in [0, size_y]``, ``z in [0, size_z]``.
     ``wound``: two such blocks (bars) side by side along ``y`` with ``gap`` between their facing faces
     ``y = size_y`` and ``y = size_y + gap``; the wound runs along ``x``; both end faces ``x = 0`` and
-    ``x = size_x`` of each bar are pinned (paper Fig. 5). Cells are as close to ``cell_size`` as the sizes allow.
+    ``x = size_x`` of each bar are pinned (paper Fig. 5). Cells are as close to ``cell_size`` as the sizes allow;
+    ``cell_size`` may not exceed any edge of the pad. The scene's tets (five per cell, both bars of a wound) are
+    counted before anything is built and refused above ``max_tets``, or when their estimated memory exceeds the
+    machine's (:func:`~suture_gym.sim.mesh.check_tet_budget`).
     """
 
     SECTION: ClassVar[str] = "scene"
@@ -127,6 +145,7 @@ class SceneConfig(_Section):
     size: tuple[float, float, float] = (0.008, 0.024, 0.008)  # m, (x, y, z) of the pad or of each bar
     cell_size: float = 0.002  # m, target edge of the hexahedral cells (each split into five tets)
     gap: float = 0.004  # m, wound gap between the bars (wound scenes only)
+    max_tets: int = 100_000  # most tets the scene may have (the defaults have 1-4k; 100k take ~0.8 GB implicit)
 
     def validate(self, path: str) -> None:
         _choice(f"{path}.kind", self.kind, SCENE_KINDS)
@@ -134,6 +153,15 @@ class SceneConfig(_Section):
             _real(f"{path}.size[{k}]", v, low=0.0, strict_low=True)
         _real(f"{path}.cell_size", self.cell_size, low=0.0, strict_low=True)
         _real(f"{path}.gap", self.gap, low=0.0, strict_low=True)
+        _count(f"{path}.max_tets", self.max_tets, 1)
+        for k, v in enumerate(self.size):
+            if self.cell_size > v:
+                _fail(f"{path}.cell_size", f"= {self.cell_size} m is larger than the pad: {path}.size[{k}] = {v} m")
+
+    @property
+    def tets(self) -> int:
+        """Tets of the scene: five per cell, times two bars for a wound."""
+        return 5 * math.prod(self.cells) * (2 if self.kind == "wound" else 1)
 
     @property
     def cells(self) -> tuple[int, int, int]:
@@ -235,6 +263,9 @@ class SolverConfig(Solver):
     def __post_init__(self) -> None:
         super().__post_init__()
         _real("solver.dt", self.dt, low=0.0, strict_low=True)
+        if self.dt > MAX_DT:
+            _fail("solver.dt", f"must be <= {MAX_DT} s (the environments are validated at 1 ms substeps), "
+                  f"got {self.dt!r}")
         _count("solver.substeps", self.substeps, 1)
 
     def solver(self) -> Solver:
@@ -251,8 +282,7 @@ class ActionConfig(_Section):
     ``pose_delta``: the holder's target pose moves by ``action[:3] * max_translation`` (m, world frame) and
     turns by the rotation vector ``action[3:] * max_rotation`` (rad, world frame, about the grip point) each
     env step; the virtual coupling (spring-damper with the stiffnesses below) pulls the needle towards it.
-    Finite actions outside [-1, 1] are applied as given (scaled linearly, not clipped); wrap the env in
-    :class:`gymnasium.wrappers.ClipAction` to enforce the box.
+    Finite actions outside [-1, 1] are clipped to it, so these scales are the largest command.
     """
 
     SECTION: ClassVar[str] = "action"
@@ -444,6 +474,14 @@ class EnvConfig:
             section = getattr(self, f.name)
             if f.name not in ("task", "task_params") and type(section) is not _field_types(EnvConfig)[f.name]:
                 _fail(f.name, f"must be a {_field_types(EnvConfig)[f.name].__name__}, got {type(section).__name__}")
+        scene = self.scene
+        implicit = self.solver.tissue_integrator != "xpbd"
+        check_tet_budget(scene.tets, f"scene.cell_size = {scene.cell_size:g} m over scene.size = {list(scene.size)} m",
+                         scene.max_tets, "scene.max_tets", BYTES_PER_TET_IMPLICIT if implicit else BYTES_PER_TET_XPBD)
+        noise, margin = self.randomization.needle_position_noise, self.termination.workspace_margin
+        if noise >= margin:
+            _fail("randomization.needle_position_noise", f"= {noise} m must be below termination.workspace_margin = "
+                  f"{margin} m, or the needle can start outside the workspace")
         cls.check_config(self)
 
 

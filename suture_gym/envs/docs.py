@@ -29,8 +29,9 @@ def _section(title: str, lines: list[str]) -> list[str]:
 def _action_lines(config) -> list[str]:
     a = config.action
     return [
-        "``Box(-1, 1, (6,), float32)``; a non-finite action raises ValueError, finite ones outside the box are "
-        "applied as given.",
+        "``Box(-1, 1, (6,), float32)``; an action that is not real numbers raises TypeError naming its dtype, a "
+        "non-finite one ValueError; finite ones outside the box are clipped to it (acted on and penalised as the "
+        "box's edge).",
         f"* ``wrench`` (default ``action.mode = {a.mode!r}``): ``[force (3) N, torque (3) N m]`` on the needle "
         f"holder = action times ``({a.max_force} N x3, {a.max_torque} N m x3)``, world frame, torque about the "
         "grip point, held over the env step.",
@@ -92,11 +93,15 @@ def _end_lines(task: type[Task], config) -> list[str]:
     return [
         "``terminated`` on success; on failure: the tip leaves the workspace (the tissue's box grown by "
         f"``termination.workspace_margin = {config.termination.workspace_margin}`` m), a tear (a coupling force "
-        f"above ``coupling.tear_force = {config.coupling.tear_force}`` N, with ``termination.end_on_tear``), or "
+        f"above ``coupling.tear_force = {config.coupling.tear_force}`` N, with ``termination.end_on_tear``), "
         "(flat ids of tasks that need every stitch on the plan, with ``termination.end_on_miss``) a stitch "
-        "entered or exited off the plan.",
+        "entered or exited off the plan, or a divergence of the simulation (a non-finite state, a speed above "
+        f"``solver.max_speed = {config.solver.max_speed}`` m/s, or a non-finite observation or reward): "
+        "``info['diverged'] = True``, the last finite observation, ``-w_failure`` and the banked progress handed "
+        "back, every other term 0.",
         f"``truncated`` at the time limit, {task.MAX_EPISODE_STEPS} steps ({seconds:g} s with the default "
-        "config), and with ``info['diverged'] = True`` when the simulation diverges.",
+        "config).",
+        "After ``terminated``, ``step`` raises RuntimeError until ``reset``.",
     ]
 
 

@@ -223,6 +223,14 @@ class Simulation:
         rest = scene.model.tissue.particle_rest_q
         margin = cfg.termination.workspace_margin
         workspace = np.stack([rest.min(axis=0) - margin, rest.max(axis=0) + margin])
+        tip = needle_point_world(needle, needle_state, needle.tip_pos_body)
+        if np.any(tip < workspace[0]) or np.any(tip > workspace[1]):
+            raise ValueError(
+                f"the needle's tip starts at {tip.round(4).tolist()} m, outside the workspace "
+                f"{workspace.round(4).tolist()} m (termination.workspace_margin = {margin} m around the tissue): check "
+                f"plan.start_angle = {cfg.plan.start_angle} rad and the episode's needle_position_offset = "
+                f"{params.needle_position_offset.tolist()} m"
+            )
         gap_rest = mean_gap(rest, left, right)
         for array in (workspace, left, right):
             array.flags.writeable = False

@@ -15,6 +15,8 @@ Everything here is plain NumPy: it runs once at scene construction, never inside
 
 from __future__ import annotations
 
+import math
+import os
 from dataclasses import dataclass
 
 import numpy as np
@@ -29,6 +31,52 @@ TET_FACES = np.array([[1, 2, 3], [0, 3, 2], [0, 1, 3], [0, 2, 1]], dtype=np.int6
 VOLUME_TOL = 1e-9
 
 GRID_SCHEMES = ("five", "six")
+
+#: Default cap on the tets of a mesh built here (:func:`box_tet_grid`, and ``tetrahedralize_surface``): about
+#: 1 GB and 10 s to build and validate. A backstop against a typo in a cell size; pass ``max_tets`` to go beyond.
+MAX_TETS = 1_000_000
+#: Peak memory per tet, bytes, of building a scene and taking its first step, measured on env pads of 61k-491k
+#: tets (peak RSS growth divided by the tets; a bare grid and its validation peak at about 1.0 kB per tet too):
+#: about 1.0 kB with the XPBD tissue integrator; 7-8 kB with an implicit one, whose sparse Cholesky factor
+#: grows faster than the mesh. Rough (+-50%), for refusing what cannot fit, not for planning.
+BYTES_PER_TET_XPBD = 1_100
+BYTES_PER_TET_IMPLICIT = 8_000
+
+
+def physical_memory() -> int | None:
+    """This machine's physical memory, bytes (None where the OS does not say)."""
+    try:
+        return int(os.sysconf("SC_PAGE_SIZE")) * int(os.sysconf("SC_PHYS_PAGES"))
+    except (AttributeError, ValueError, OSError):
+        return None
+
+
+def check_tet_budget(tets: int, cause: str, max_tets: int, cap_name: str,
+                     bytes_per_tet: float = BYTES_PER_TET_XPBD) -> None:
+    """Refuse, before anything is built, a mesh of ``tets`` tets above ``max_tets`` or whose estimated peak
+    memory (``tets * bytes_per_tet``) exceeds this machine's physical memory.
+
+    Args:
+        tets: the tets the settings would give (an estimate where the mesher decides).
+        cause: the settings that give them, named as the caller's parameters (``"scene.cell_size = 1e-4 m"``).
+        max_tets: the cap; ``cap_name``: its parameter's name, for the message.
+        bytes_per_tet: peak memory per tet, bytes (:data:`BYTES_PER_TET_XPBD`, :data:`BYTES_PER_TET_IMPLICIT`).
+
+    Raises:
+        ValueError: with the tets, the memory estimate, the cap and the parameters' names.
+    """
+    memory = tets * bytes_per_tet
+    if tets > max_tets:
+        raise ValueError(
+            f"{cause} gives {tets:,} tets (about {memory / 1e9:.3g} GB of memory, estimated), above "
+            f"{cap_name} = {max_tets:,}: coarsen the mesh, or raise {cap_name} if the machine can take it"
+        )
+    physical = physical_memory()
+    if physical is not None and memory > physical:
+        raise ValueError(
+            f"{cause} gives {tets:,} tets, about {memory / 1e9:.3g} GB of memory (estimated), more than this "
+            f"machine's {physical / 1e9:.3g} GB: coarsen the mesh"
+        )
 
 
 @dataclass(frozen=True)
@@ -265,7 +313,7 @@ def surface_triangles(tets: np.ndarray, return_tet: bool = False):
     return triangles
 
 
-def box_tet_grid(size, cells, origin=(0.0, 0.0, 0.0), scheme: str = "five") -> TetMesh:
+def box_tet_grid(size, cells, origin=(0.0, 0.0, 0.0), scheme: str = "five", max_tets: int = MAX_TETS) -> TetMesh:
     """Structured tet mesh of the axis-aligned box ``[origin, origin + size]``.
 
     The box is split into ``cells = (nx, ny, nz)`` equal hexahedral cells. Vertex ``(i, j, k)`` (grid
@@ -284,6 +332,7 @@ def box_tet_grid(size, cells, origin=(0.0, 0.0, 0.0), scheme: str = "five") -> T
         cells: ``(3,)`` positive integer cell counts.
         origin: ``(3,)`` minimum corner, m.
         scheme: ``"five"`` or ``"six"``.
+        max_tets: refuse (ValueError, see :func:`check_tet_budget`) a grid of more tets, before building it.
 
     Returns:
         A validated :class:`TetMesh` with all tets positively oriented.
@@ -300,6 +349,9 @@ def box_tet_grid(size, cells, origin=(0.0, 0.0, 0.0), scheme: str = "five") -> T
     if scheme not in GRID_SCHEMES:
         raise ValueError(f"scheme must be one of {GRID_SCHEMES}, got {scheme!r}")
     nx, ny, nz = (int(c) for c in cells_arr)
+    per_cell = 5 if scheme == "five" else 6
+    check_tet_budget(per_cell * math.prod((nx, ny, nz)), f"box_tet_grid cells = {[nx, ny, nz]}", max_tets,
+                     "max_tets")
 
     gi, gj, gk = np.meshgrid(np.arange(nx + 1), np.arange(ny + 1), np.arange(nz + 1), indexing="ij")
     grid = np.stack([gi.ravel(order="F"), gj.ravel(order="F"), gk.ravel(order="F")], axis=1)

@@ -6,7 +6,9 @@
   two backends:
 
   ``"tetwild"``  fTetWild through ``pytetwild`` (optional ``mesh`` extra; MPL-2.0). Good-quality tets that
-                 follow the surface; the paper's meshes were made with TetWild.
+                 follow the surface; the paper's meshes were made with TetWild. It runs in a child Python
+                 process in a scratch directory: fTetWild writes a debug file into the working directory, and
+                 the caller's must neither receive it nor change (``os.chdir`` is process-wide).
   ``"voxel"``    built in, no extra dependency: the structured tet grid of :func:`~suture_gym.sim.mesh.box_tet_grid`
                  over the surface's bounding box, keeping the cells whose centre lies inside. The boundary is a
                  staircase at the grid spacing; use it for quick experiments and tests.
@@ -14,20 +16,40 @@
   TetGen is deliberately not offered: it bundles AGPL code.
 
 Every mesh returned here has passed :func:`~suture_gym.sim.mesh.validate_tet_mesh`, so a bad file fails at
-load time with a ValueError naming the bad element rather than later inside the solver.
+load time with a ValueError naming the bad element rather than later inside the solver. A file the readers
+cannot parse (empty, truncated, garbage) also raises a ValueError naming the file and what went wrong: meshio's
+own failure modes (a ``sys.exit(1)`` when no reader accepts the file, bare numpy errors from a truncated one)
+never reach the caller. ``.msh`` means Gmsh here, read and written: meshio would write ANSYS and, on a Gmsh file
+it failed to parse, try its ANSYS reader, which loops forever on a truncated file. For the same reason (meshio's
+PLY reader loops on a truncated header) the surface-only formats are refused by :func:`read_tet_mesh` before
+they are opened.
 """
 
 from __future__ import annotations
 
-import os
+import contextlib
+import importlib.util
+import io
+import math
+import subprocess
+import sys
 import tempfile
 from pathlib import Path
 
 import numpy as np
 
-from suture_gym.sim.mesh import TetMesh, box_tet_grid, signed_volumes
+from suture_gym.sim.mesh import MAX_TETS, TetMesh, box_tet_grid, check_tet_budget, signed_volumes
 
 BACKENDS = ("auto", "tetwild", "voxel")
+
+#: Surface-only file formats: they hold no tetrahedra (fill them with :func:`tetrahedralize_surface`).
+SURFACE_FORMATS = (".obj", ".off", ".ply", ".stl")
+
+#: File extensions trimesh reads with its own loaders; every other extension goes through meshio.
+TRIMESH_FORMATS = (
+    ".3dxml", ".3mf", ".ctm", ".dae", ".glb", ".gltf", ".obj", ".off", ".ply", ".step", ".stl", ".stp", ".xaml",
+    ".xyz", ".zae",
+)
 
 
 def _require_meshio():
@@ -50,29 +72,74 @@ def read_tet_mesh(path: str | Path) -> TetMesh:
 
     Raises:
         FileNotFoundError: the file does not exist.
-        ValueError: the file has no tetrahedra, or the mesh is invalid (inverted/zero-volume tet, non-finite
-            coordinate, open surface...; the message names the element).
+        ValueError: naming the file: it is empty, damaged or not a mesh file (what the reader said), a
+            surface-only format, a ``.msh`` that is not Gmsh, it has no tetrahedra, or the mesh is invalid
+            (inverted/zero-volume tet, non-finite coordinate, open surface...; the message names the element).
     """
-    meshio = _require_meshio()
     path = Path(path)
     if not path.exists():
         raise FileNotFoundError(f"tet mesh file {str(path)!r} does not exist")
-    data = meshio.read(path)
+    if path.suffix.lower() in SURFACE_FORMATS:
+        raise ValueError(
+            f"{str(path)!r} is a surface format ({path.suffix}), which holds no tetrahedra: fill it with "
+            "tetrahedralize_surface"
+        )
+    data = _read_meshio(path)
     blocks = [np.asarray(c.data) for c in data.cells if c.type == "tetra"]
     if not blocks:
         kinds = sorted({c.type for c in data.cells})
         raise ValueError(f"{str(path)!r} holds no 'tetra' cells (found {kinds}); a volume mesh is needed")
     tets = np.concatenate(blocks).astype(np.int64)
+    vertices = _points(data, path)
+    try:
+        return _compact(vertices, tets)
+    except ValueError as exc:
+        raise ValueError(f"{str(path)!r}: {exc}") from exc
+
+
+def _read_meshio(path: Path):
+    """``meshio.read(path)``, every way a bad file fails turned into a ValueError naming ``path``.
+
+    meshio prints its readers' complaints and calls ``sys.exit(1)`` when none accepts the file; that text is
+    captured into the message instead. A ``.msh`` file must be Gmsh (``$MeshFormat`` header): see the module
+    docstring.
+    """
+    meshio = _require_meshio()
+    name = repr(str(path))
+    with path.open("rb") as fh:
+        head = fh.read(64)
+    if not head:
+        raise ValueError(f"mesh file {name} is empty")
+    file_format = None
+    if path.suffix.lower() == ".msh":
+        if not head.lstrip().startswith(b"$MeshFormat"):
+            raise ValueError(
+                f"mesh file {name} is not a Gmsh file (no $MeshFormat header); other .msh formats (ANSYS) are "
+                "not read: convert it to .vtu or Gmsh"
+            )
+        file_format = "gmsh"
+    printed = io.StringIO()
+    try:
+        with contextlib.redirect_stdout(printed), contextlib.redirect_stderr(printed):
+            return meshio.read(path, file_format=file_format)
+    except (Exception, SystemExit) as exc:
+        said = " ".join(printed.getvalue().split()) or "no reader accepted it"
+        detail = said if isinstance(exc, SystemExit) else f"{type(exc).__name__}: {exc}"
+        raise ValueError(f"mesh file {name} could not be read (damaged or not a mesh file?): {detail}") from exc
+
+
+def _points(data, path: Path) -> np.ndarray:
+    """The ``(N, 3) float64`` points of a meshio mesh read from ``path``; ValueError naming it otherwise."""
     vertices = np.asarray(data.points, dtype=np.float64)
     if vertices.ndim != 2 or vertices.shape[1] != 3:
         raise ValueError(f"{str(path)!r}: points must be 3-D, got shape {vertices.shape}")
-    return _compact(vertices, tets)
+    return vertices
 
 
 def write_tet_mesh(path: str | Path, mesh: TetMesh, point_data: dict[str, np.ndarray] | None = None) -> None:
     """Write ``mesh`` (and optional per-vertex arrays, e.g. displacement (N,3) m) with meshio.
 
-    The format follows the file extension (``.vtu`` opens in ParaView).
+    The format follows the file extension (``.vtu`` opens in ParaView; ``.msh`` is Gmsh 4.1).
     """
     meshio = _require_meshio()
     point_data = {k: np.asarray(v) for k, v in (point_data or {}).items()}
@@ -81,9 +148,11 @@ def write_tet_mesh(path: str | Path, mesh: TetMesh, point_data: dict[str, np.nda
             raise ValueError(
                 f"point_data[{name!r}] has {len(values)} rows; the mesh has {len(mesh.vertices)} vertices"
             )
+    path = Path(path)
     meshio.write(
-        Path(path),
+        path,
         meshio.Mesh(mesh.vertices, [("tetra", np.asarray(mesh.tets, dtype=np.int64))], point_data=point_data),
+        file_format="gmsh" if path.suffix.lower() == ".msh" else None,
     )
 
 
@@ -98,8 +167,9 @@ def load_surface_mesh(source, scale: float = 1.0):
         ``trimesh.Trimesh`` in metres.
 
     Raises:
-        ValueError: no triangles, non-finite coordinates, non-positive scale, or a surface that is not
-            watertight (open boundary edges or non-manifold edges), naming the file.
+        ValueError: an empty, damaged or unreadable file, no triangles, non-finite coordinates, non-positive
+            scale, or a surface that is not watertight (open boundary edges or non-manifold edges), naming the
+            file.
     """
     import trimesh
 
@@ -109,9 +179,10 @@ def load_surface_mesh(source, scale: float = 1.0):
     if isinstance(source, trimesh.Trimesh):
         surface = source.copy()
     else:
-        if not Path(source).exists():
+        path = Path(source)
+        if not path.exists():
             raise FileNotFoundError(f"surface mesh file {name} does not exist")
-        surface = trimesh.load(source, force="mesh", process=True)
+        surface = _read_surface_file(path)
     if len(surface.faces) == 0:
         raise ValueError(f"surface {name} has no triangles")
     if not np.all(np.isfinite(surface.vertices)):
@@ -128,14 +199,44 @@ def load_surface_mesh(source, scale: float = 1.0):
     return surface
 
 
-def tetrahedralize_surface(source, edge_length: float, backend: str = "auto", scale: float = 1.0) -> TetMesh:
+def _read_surface_file(path: Path):
+    """Load the triangles of ``path`` as a ``trimesh.Trimesh`` (file units); ValueError naming it if unreadable.
+
+    trimesh's own formats are loaded by trimesh; the rest through :func:`_read_meshio` (trimesh would hand them
+    to meshio itself, without the guards against a truncated ``.msh``).
+    """
+    import trimesh
+
+    name = repr(str(path))
+    if path.suffix.lower() not in TRIMESH_FORMATS:
+        data = _read_meshio(path)
+        blocks = [np.asarray(c.data) for c in data.cells if c.type == "triangle"]
+        if not blocks:
+            kinds = sorted({c.type for c in data.cells})
+            raise ValueError(f"surface mesh file {name} holds no 'triangle' cells (found {kinds})")
+        return trimesh.Trimesh(_points(data, path), np.concatenate(blocks), process=True)
+    if path.stat().st_size == 0:
+        raise ValueError(f"surface mesh file {name} is empty")
+    try:
+        return trimesh.load(path, force="mesh", process=True)
+    except Exception as exc:
+        raise ValueError(
+            f"surface mesh file {name} could not be read (damaged or not a mesh file?): {type(exc).__name__}: {exc}"
+        ) from exc
+
+
+def tetrahedralize_surface(source, edge_length: float, backend: str = "auto", scale: float = 1.0,
+                           max_tets: int = MAX_TETS) -> TetMesh:
     """Fill a closed surface with tetrahedra.
 
     Args:
         source: path or ``trimesh.Trimesh`` of a closed surface (see :func:`load_surface_mesh`).
         edge_length: target tet edge length in metres (the voxel backend's grid spacing).
-        backend: ``"tetwild"``, ``"voxel"``, or ``"auto"`` (tetwild when ``pytetwild`` imports, else voxel).
+        backend: ``"tetwild"``, ``"voxel"``, or ``"auto"`` (tetwild when ``pytetwild`` is installed, else voxel).
         scale: factor converting the file's units to metres.
+        max_tets: refuse (ValueError naming ``edge_length`` and ``max_tets``) a fill estimated above this many
+            tets, before it starts: the voxel backend builds the grid over the whole bounding box (5 tets per
+            cell of ``edge_length``); fTetWild's count is estimated as the volume over a regular tet's.
 
     Returns:
         A validated :class:`TetMesh` with positively oriented tets.
@@ -146,44 +247,61 @@ def tetrahedralize_surface(source, edge_length: float, backend: str = "auto", sc
         raise ValueError(f"edge_length must be a positive finite length in metres, got {edge_length!r}")
     surface = load_surface_mesh(source, scale=scale)
     if backend == "auto":
-        backend = "tetwild" if _tetwild() is not None else "voxel"
+        backend = "tetwild" if _tetwild_installed() else "voxel"
+    lo, hi = surface.bounds
+    if backend == "voxel":
+        tets = 5 * math.prod(max(1, math.ceil(float(e) / edge_length)) for e in hi - lo)
+    else:
+        tets = math.ceil(float(surface.volume) / (edge_length**3 / (6.0 * math.sqrt(2.0))))
+    extent = " x ".join(f"{float(e):.3g}" for e in hi - lo)
+    check_tet_budget(tets, f"edge_length = {edge_length:g} m over a {extent} m surface ({backend} backend)",
+                     max_tets, "max_tets")
     if backend == "tetwild":
-        pytetwild = _tetwild()
-        if pytetwild is None:
+        if not _tetwild_installed():
             raise ImportError("backend 'tetwild' needs pytetwild: pip install 'suture_gym[mesh]'")
-        # fTetWild writes a debug file (``__tracked_surface.stl``) into the working directory: run it in a
-        # scratch directory so nothing lands in the user's tree.
-        cwd = os.getcwd()
-        with tempfile.TemporaryDirectory(prefix="suture_gym_tetwild_") as scratch:
-            os.chdir(scratch)
-            try:
-                vertices, tets = pytetwild.tetrahedralize(
-                    np.asarray(surface.vertices, dtype=np.float64),
-                    np.asarray(surface.faces, dtype=np.int32),
-                    edge_length_abs=float(edge_length),
-                    num_threads=1,
-                )
-            finally:
-                os.chdir(cwd)
-        return _compact(np.asarray(vertices, dtype=np.float64), _orient(vertices, np.asarray(tets)))
-    return _voxel_tets(surface, float(edge_length))
+        vertices, tets = _run_tetwild(np.asarray(surface.vertices, dtype=np.float64),
+                                      np.asarray(surface.faces, dtype=np.int32), float(edge_length))
+        return _compact(vertices, _orient(vertices, tets))
+    return _voxel_tets(surface, float(edge_length), max_tets)
 
 
-def _tetwild():
-    try:
-        import pytetwild
-    except ImportError:
-        return None
-    return pytetwild
+def _tetwild_installed() -> bool:
+    """Whether ``pytetwild`` can be imported (found without importing it: it imports pyvista and VTK)."""
+    return importlib.util.find_spec("pytetwild") is not None
 
 
-def _voxel_tets(surface, spacing: float) -> TetMesh:
+#: The child process of :func:`_run_tetwild`: reads ``surface.npz`` and writes ``tets.npz`` in its working directory.
+_TETWILD_CHILD = """
+import numpy as np
+import pytetwild
+
+surface = np.load("surface.npz")
+vertices, tets = pytetwild.tetrahedralize(surface["vertices"], surface["faces"],
+                                          edge_length_abs=float(surface["edge_length"]), num_threads=1)
+np.savez("tets.npz", vertices=np.asarray(vertices, dtype=np.float64), tets=np.asarray(tets, dtype=np.int64))
+"""
+
+
+def _run_tetwild(vertices: np.ndarray, faces: np.ndarray, edge_length: float) -> tuple[np.ndarray, np.ndarray]:
+    """fTetWild on the surface ``vertices`` (V, 3) m, ``faces`` (F, 3), in a child process whose working directory
+    is a scratch directory (fTetWild writes ``__tracked_surface.stl`` there); returns ``(vertices (N, 3) m,
+    tets (T, 4))``. RuntimeError with the child's error output if it fails."""
+    with tempfile.TemporaryDirectory(prefix="suture_gym_tetwild_") as scratch:
+        np.savez(Path(scratch) / "surface.npz", vertices=vertices, faces=faces, edge_length=edge_length)
+        done = subprocess.run([sys.executable, "-c", _TETWILD_CHILD], cwd=scratch, capture_output=True, text=True)
+        if done.returncode != 0:
+            raise RuntimeError(f"fTetWild failed (exit status {done.returncode}): {done.stderr.strip()[-2000:]}")
+        with np.load(Path(scratch) / "tets.npz") as result:
+            return result["vertices"], result["tets"]
+
+
+def _voxel_tets(surface, spacing: float, max_tets: int) -> TetMesh:
     """Keep the cells of a structured tet grid whose centres lie inside ``surface``."""
     lo, hi = surface.bounds
     cells = np.maximum(np.ceil((hi - lo) / spacing).astype(int), 1)
     size = cells * spacing
     origin = lo - 0.5 * (size - (hi - lo))
-    grid = box_tet_grid(size=tuple(size), cells=tuple(int(c) for c in cells), origin=tuple(origin))
+    grid = box_tet_grid(size=tuple(size), cells=tuple(int(c) for c in cells), origin=tuple(origin), max_tets=max_tets)
     cell_of_tet = np.floor((grid.vertices[grid.tets].mean(axis=1) - origin) / spacing).astype(np.int64)
     cell_of_tet = np.clip(cell_of_tet, 0, cells - 1)
     flat = np.ravel_multi_index(cell_of_tet.T, tuple(cells))

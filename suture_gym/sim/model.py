@@ -26,13 +26,19 @@ from suture_gym.sim.needle import NeedleModel, NeedleState
 from suture_gym.sim.rod import RodModel, RodState, RodWork, StaticObstacles
 from suture_gym.sim.tissue_implicit import ImplicitTissue, implicit_tissue
 
+#: Young's moduli (Pa) the simulator's checks cover (docs/tissue_integrator.md): 1 kPa to 1 MPa.
+VALIDATED_YOUNGS_MODULUS = (1.0e3, 1.0e6)
+#: Young's moduli (Pa) a :class:`TissueMaterial` accepts: generous bounds around the validated range. Below 1 Pa
+#: a pad cannot carry its own weight; 100 MPa is stiff plastic, not tissue.
+YOUNGS_MODULUS_LIMITS = (1.0, 1.0e8)
 
 @dataclass(frozen=True)
 class TissueMaterial:
     """Isotropic hyperelastic tissue material (stable neo-Hookean) with mass-proportional damping.
 
     Attributes:
-        youngs_modulus: small-strain Young's modulus ``E``, Pa (> 0). Default 1 kPa (paper).
+        youngs_modulus: small-strain Young's modulus ``E``, Pa, within :data:`YOUNGS_MODULUS_LIMITS` (1 Pa to
+            100 MPa: generous bounds around the 1 kPa-1 MPa the simulator is validated for). Default 1 kPa (paper).
         poisson_ratio: small-strain Poisson's ratio ``nu`` in ``[0, 0.5]``; 0.5 is incompressible.
         density: mass density, kg/m^3 (> 0).
         damping: mass-proportional velocity damping rate ``c``, 1/s (>= 0): free particle velocities decay
@@ -60,8 +66,12 @@ class TissueMaterial:
             if not math.isfinite(float(value)):
                 raise ValueError(f"TissueMaterial.{name} must be finite, got {value!r}")
             object.__setattr__(self, name, float(value))
-        if self.youngs_modulus <= 0:
-            raise ValueError(f"TissueMaterial.youngs_modulus must be > 0 Pa, got {self.youngs_modulus!r}")
+        low, high = YOUNGS_MODULUS_LIMITS
+        if not low <= self.youngs_modulus <= high:
+            raise ValueError(
+                f"TissueMaterial.youngs_modulus must lie in [{low:g}, {high:g}] Pa (the simulator is validated from "
+                f"{VALIDATED_YOUNGS_MODULUS[0]:g} to {VALIDATED_YOUNGS_MODULUS[1]:g} Pa), got {self.youngs_modulus!r}"
+            )
         if not 0.0 <= self.poisson_ratio <= 0.5:
             raise ValueError(f"TissueMaterial.poisson_ratio must lie in [0, 0.5], got {self.poisson_ratio!r}")
         if self.density <= 0:

@@ -36,14 +36,14 @@ Reward terms (each reported as ``info["reward_<name>"]``; a task uses a subset, 
   the gap at rest ``g0``.
 * ``success``: ``w_success`` once, on the step the task succeeds.
 * ``failure``: ``-w_failure`` once, on the step an episode ends in failure: the tip leaves the workspace, the
-  tissue tears (with ``termination.end_on_tear``), or the task can no longer succeed (``termination.end_on_miss``:
+  tissue tears (with ``termination.end_on_tear``), the task can no longer succeed (``termination.end_on_miss``:
   a stitch of a task that needs every stitch on the plan was entered or exited farther than ``access_tolerance``
-  from it). Without it the per-step penalties (``path``,
+  from it), or the simulation diverges (:meth:`Task.diverged`). Without it the per-step penalties (``path``,
   ``tissue_force``) make ending an episode early pay; it cannot pay once ``w_failure`` exceeds the discounted
   sum of those penalties, ``w_path / (1 - gamma)`` for the path term.
 * ``tissue_force``: ``-w_tissue_force cost`` with ``cost = max(0, F - safe_force) / (tear_force - safe_force)``
   and ``F`` the largest coupling force (N) of the step; ``info["cost"] = cost`` (>= 0) for safe RL.
-* ``action``: ``-w_action mean(a^2)`` of the raw action.
+* ``action``: ``-w_action mean(a^2)`` of the action (clipped to the action box by the env).
 
 The reward is ``math.fsum`` of the terms, so ``math.fsum(info["reward_<t>"] for t in TERMS) == reward`` holds
 exactly (``fsum`` is correctly rounded, whatever the order of the terms).
@@ -221,7 +221,9 @@ BUILTIN_VERSION_HISTORY = (
     "implicit quasi-Newton integrator with two sweeps per substep (was XPBD, which at the env's time step gave "
     "the wrong Poisson's ratio and softness); every force x100: puncture 0.5 N, tear 10 N, actions up to 5 N "
     "and 0.02 N m per axis, holder 2 kg; the insertion force model on (exit peak 0.25 N, cutting 0.1 N, a 1 mm "
-    "tip patch); thread nodes in a path keep their own inertia along it.",
+    "tip patch); thread nodes in a path keep their own inertia along it. Also (issue 19): actions outside the "
+    "box are clipped to it, a divergence ends the episode as a failure (terminated, failure penalty), and a step "
+    "after the env ended the episode raises.",
     "v0: 3 kPa XPBD tissue and millinewton forces (puncture 5 mN, actions up to 0.05 N and 2e-4 N m).",
 )
 
@@ -384,6 +386,22 @@ class Task(ABC):
             failed=ctx.failed,
         )
 
+    def diverged(self) -> TaskOutcome:
+        """The outcome of a step on which the simulation diverged (non-finite or absurd state): a failing end.
+
+        Nothing can be measured on a diverged state, so every term is 0 except ``failure`` (``-w_failure``) and
+        ``progress`` (``-w_progress Phi``: the banked potential handed back, as on every failing end), for the
+        tasks that have them; the cost is 0.
+        """
+        values = dict.fromkeys(self.TERMS, 0.0)
+        if "failure" in values:
+            values["failure"] = -self.reward.failure
+        if "progress" in values:
+            values["progress"] = -self.reward.progress * self.state.potential
+        self.state.potential = 0.0
+        return TaskOutcome(terms=values, reward=math.fsum(values.values()), cost=0.0, success=False, tear=False,
+                           out_of_workspace=False, missed=False, failed=True)
+
     def _advance(self, obs: Observables, action: np.ndarray) -> StepContext:
         """Update the bookkeeping with ``obs`` (events, potential, thread, gap, stitch, success, end) and return
         what the reward terms read."""
@@ -467,7 +485,7 @@ class Task(ABC):
         return -self.reward.tissue_force * ctx.cost
 
     def term_action(self, ctx: StepContext) -> float:
-        """``-w_action mean(a^2)`` of the raw action."""
+        """``-w_action mean(a^2)`` of the action (clipped to the box)."""
         return -self.reward.action * float(np.mean(np.square(ctx.action)))
 
     def failure(self, obs: Observables, outside: bool, missed: bool) -> bool:
