@@ -5,7 +5,7 @@ Steps:
 1. train PPO (``configs/agents/ppo.yml``) on ``SutureGym/NeedleInsert-v1`` with its randomised config for
    ``--n-timesteps`` env steps with a progress bar, evaluating every ``--eval-freq`` steps
    (``agents.training.train``; run directory ``<out>/ppo_NeedleInsert_s<seed>/``). The config warm-starts the
-   policy by behaviour cloning 40 scripted-expert episodes (recorded first, about a minute);
+   policy by behaviour cloning 80 scripted-expert episodes (recorded first, about three minutes);
 2. evaluate the final model on ``--episodes`` seeded episodes of the same env config, and the scripted expert
    and random actions on the same seeds for scale (``agents.evaluation.evaluate``) -> ``<run>/evaluation.json``;
 3. the learning curve -> ``<run>/learning_curve.png`` (written by the training);
