@@ -513,6 +513,13 @@ STIFF_ENV_SWEEPS = 2
 V0_YOUNGS = 3.0e3
 
 
+#: The coupling and action fields :func:`_stiff_env` scales down to the v0 physics (forces and the virtual
+#: coupling's gains).
+_V0_SCALED_COUPLING = ("puncture_force", "exit_puncture_force", "cutting_force", "tear_force", "needle_axial_friction")
+_V0_SCALED_ACTION = ("max_force", "max_torque", "coupling_linear_stiffness", "coupling_linear_damping",
+                     "coupling_angular_stiffness", "coupling_angular_damping")  # fmt: skip
+
+
 def _stiff_env(env_id: str, stiff: bool):
     """``gym.make(env_id)``: if ``stiff``, as registered (300 kPa on the implicit integrator); otherwise with the
     v0 physics: the tissue at :data:`V0_YOUNGS` on XPBD with one sweep, every force, the holder's mass and
@@ -530,21 +537,10 @@ def _stiff_env(env_id: str, stiff: bool):
             "holder_inertia": base.needle.holder_inertia * scale,
         },
         "coupling": {
-            "puncture_force": c.puncture_force * scale,
-            "exit_puncture_force": c.exit_puncture_force * scale,
-            "cutting_force": c.cutting_force * scale,
-            "tear_force": c.tear_force * scale,
-            "needle_axial_friction": c.needle_axial_friction * scale,
+            **{name: getattr(c, name) * scale for name in _V0_SCALED_COUPLING},
             "tip_contact_radius": 0.0,
         },
-        "action": {
-            "max_force": a.max_force * scale,
-            "max_torque": a.max_torque * scale,
-            "coupling_linear_stiffness": a.coupling_linear_stiffness * scale,
-            "coupling_linear_damping": a.coupling_linear_damping * scale,
-            "coupling_angular_stiffness": a.coupling_angular_stiffness * scale,
-            "coupling_angular_damping": a.coupling_angular_damping * scale,
-        },
+        "action": {name: getattr(a, name) * scale for name in _V0_SCALED_ACTION},
         "reward": {"safe_force": base.reward.safe_force * scale},
         "solver": {"tissue_integrator": "xpbd", "iterations": 1},
     }
