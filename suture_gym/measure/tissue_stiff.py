@@ -513,9 +513,9 @@ STIFF_ENV_SWEEPS = 2
 V0_YOUNGS = 3.0e3
 
 
-#: The coupling and action fields :func:`_stiff_env` scales down to the v0 physics (forces and the virtual
-#: coupling's gains).
-_V0_SCALED_COUPLING = ("puncture_force", "exit_puncture_force", "cutting_force", "tear_force", "needle_axial_friction")
+#: The coupling and action fields :func:`_stiff_env` scales down to the v0 physics (the forces v0 had and the
+#: virtual coupling's gains).
+_V0_SCALED_COUPLING = ("puncture_force", "tear_force", "needle_axial_friction")
 _V0_SCALED_ACTION = ("max_force", "max_torque", "coupling_linear_stiffness", "coupling_linear_damping",
                      "coupling_angular_stiffness", "coupling_angular_damping")  # fmt: skip
 
@@ -523,8 +523,8 @@ _V0_SCALED_ACTION = ("max_force", "max_torque", "coupling_linear_stiffness", "co
 def _stiff_env(env_id: str, stiff: bool):
     """``gym.make(env_id)``: if ``stiff``, as registered (300 kPa on the implicit integrator); otherwise with the
     v0 physics: the tissue at :data:`V0_YOUNGS` on XPBD with one sweep, every force, the holder's mass and
-    inertia and the virtual coupling's gains scaled by ``V0_YOUNGS / E_default`` and the insertion force model's
-    tip patch off. Returns (env, overrides)."""
+    inertia and the virtual coupling's gains scaled by ``V0_YOUNGS / E_default`` and the insertion force model
+    off (no exit threshold, cutting force or tip patch). Returns (env, overrides)."""
     if stiff:
         return gym.make(env_id), {}
     base = load_config(ENV_IDS[env_id])
@@ -538,6 +538,8 @@ def _stiff_env(env_id: str, stiff: bool):
         },
         "coupling": {
             **{name: getattr(c, name) * scale for name in _V0_SCALED_COUPLING},
+            "exit_puncture_force": 0.0,
+            "cutting_force": 0.0,
             "tip_contact_radius": 0.0,
         },
         "action": {name: getattr(a, name) * scale for name in _V0_SCALED_ACTION},
