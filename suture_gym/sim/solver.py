@@ -575,7 +575,9 @@ class Solver:
         work.begin(rod_state)
         work.contact_gap[:] = np.inf
         work.contact_cap[:] = 0.0
-        if coupling is not None:
+        # thread friction rows only when the thread has friction (the default has none)
+        friction_rows = None
+        if coupling is not None and coupling.params.suture_axial_friction > 0.0:
             friction_rows = (
                 coupling.strand_friction, cwork.row_kind, cwork.row_tissue, cwork.row_weight, cwork.row_tangent,
                 rod_state.node_pos_prev, state.tissue.particle_q_prev, dt,
@@ -590,6 +592,7 @@ class Solver:
                     coupling.surface.tri_vertices, state.tissue.particle_q, tissue_w,
                     rod_state.node_pos, work.contact_gap, work.contact_normal, cwork.suture_contact_w,
                 )  # fmt: skip
+            if friction_rows is not None:
                 suture_friction_rows(
                     coupling.needle_node_count, friction_rows, state.tissue.particle_q, tissue_w, rod_state.node_pos,
                     work.contact_gap, work.contact_normal, cwork.suture_contact_w, work.contact_cap,
@@ -607,6 +610,7 @@ class Solver:
                     work.contact_normal, work.z, tissue_w, cwork.row_lambda,
                     state.tissue.particle_q,
                 )  # fmt: skip
+            if friction_rows is not None:
                 apply_friction_reaction(
                     coupling.needle_node_count, friction_rows, work.contact_cap, work.contact_normal, work.z,
                     tissue_w, cwork.row_friction_lambda, state.tissue.particle_q,
