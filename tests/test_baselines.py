@@ -54,8 +54,8 @@ def test_config_trains_saves_loads_and_evaluates(tmp_path, algo, env_id, steps):
 
 def test_goal_configs_use_her_with_info_dicts():
     for algo in ("sac", "tqc"):
-        for env_id in ("SutureGym/NeedleInsertGoal-v1", "SutureGym/SutureThrowGoal-v1",
-                       "SutureGym/WoundClosureGoal-v1"):
+        for env_id in ("SutureGym/NeedleInsertGoal-v1", "SutureGym/SutureThrowGoal-v2",
+                       "SutureGym/WoundClosureGoal-v2"):
             hyperparams = load_hyperparams(algo, env_id)
             assert hyperparams["replay_buffer_class"] == "HerReplayBuffer"
             assert hyperparams["replay_buffer_kwargs"]["copy_info_dict"] is True
@@ -77,19 +77,19 @@ def test_expert_inserts_needle_in_pose_delta_mode():
 
 
 def test_expert_throws_suture():
-    summary = evaluate("SutureGym/SutureThrow-v1", "expert", episodes=1, seed=0)
+    summary = evaluate("SutureGym/SutureThrow-v2", "expert", episodes=1, seed=0)
     assert summary["success_rate"] == 1.0
     assert summary["diverged_episodes"] == 0
 
 
 @pytest.mark.slow
 def test_expert_closes_wound():
-    summary = evaluate("SutureGym/WoundClosure-v1", "expert", episodes=1, seed=0)
+    summary = evaluate("SutureGym/WoundClosure-v2", "expert", episodes=1, seed=0)
     assert summary["success_rate"] == 1.0
     assert summary["diverged_episodes"] == 0
 
 
-@pytest.mark.parametrize("env_id", ["SutureGym/NeedleInsert-v1", "SutureGym/WoundClosure-v1"])
+@pytest.mark.parametrize("env_id", ["SutureGym/NeedleInsert-v1", "SutureGym/WoundClosure-v2"])
 def test_expert_speeds_default_per_task_and_reject_bad_values(env_id):
     env = gym.make(env_id)
     task = env.unwrapped.task
@@ -105,7 +105,7 @@ def test_expert_speeds_default_per_task_and_reject_bad_values(env_id):
 def test_expert_pull_slides_along_workspace_walls(monkeypatch):
     """Components of the pull toward a wall the tip is within WORKSPACE_INSET of are dropped; the rest keeps
     unit length; a tip cornered against every wall the pull heads for is not pulled at all."""
-    env = gym.make("SutureGym/SutureThrow-v1")
+    env = gym.make("SutureGym/SutureThrow-v2")
     env.reset(seed=0)
     expert = ExpertPolicy(env)
     sim = env.unwrapped.sim
@@ -127,7 +127,7 @@ def test_expert_pull_slides_along_workspace_walls(monkeypatch):
 
 
 def test_expert_leans_the_running_sutures_last_pull_ahead_along_the_suture():
-    env = gym.make("SutureGym/WoundClosure-v1")
+    env = gym.make("SutureGym/WoundClosure-v2")
     env.reset(seed=0)
     expert = ExpertPolicy(env)
     arcs = env.unwrapped.sim.arcs
@@ -137,7 +137,7 @@ def test_expert_leans_the_running_sutures_last_pull_ahead_along_the_suture():
     advance = (arcs[-1].center - arcs[-2].center) / np.linalg.norm(arcs[-1].center - arcs[-2].center)
     assert np.linalg.norm(last) == pytest.approx(1.0)
     assert last @ advance > 0.5 and last @ arcs[-1].pull_direction > 0.5  # ahead, and still back and up
-    single = gym.make("SutureGym/SutureThrow-v1")
+    single = gym.make("SutureGym/SutureThrow-v2")
     single.reset(seed=0)
     np.testing.assert_allclose(ExpertPolicy(single)._planned_pull(0), single.unwrapped.sim.arcs[0].pull_direction)
 

@@ -22,6 +22,7 @@ from suture_gym.sim.coupling import (
     CouplingState,
     CouplingWork,
     access_point,
+    apply_contact_reaction,
     contact_floors,
     contact_frames,
     coupling_detect,
@@ -33,6 +34,7 @@ from suture_gym.sim.coupling import (
     project_needle_rows,
     project_onto_path,
     surface_normal,
+    suture_contact_rows,
     track_sigma,
     xpbd_delta_lambda,
 )
@@ -766,3 +768,31 @@ def test_the_tip_never_punctures_a_rigid_face():
         coupling_detect(model, state, work, tissue, q, x)
         assert work.row_kind[0] == ROW_ANCHOR and model.tri_rigid[state.tip_anchor_tri]
     assert state.punctures == 0 and state.path_count == 0
+
+
+def test_a_suture_node_gets_the_more_violated_of_its_tissue_row_and_a_static_obstacle():
+    """One contact row per suture node: where a static obstacle's gap is the smaller one (a node in a wound gap
+    sunk into the base, beside the wound face) the obstacle keeps the row and the tissue takes no reaction."""
+    nn, eps = 1, 1.0e-4
+    tri_vertices = np.array([[0, 1, 2]], dtype=np.int32)
+    tissue_q = np.array([[0.0, 0.0, 0.0], [1.0e-3, 0.0, 0.0], [0.0, 0.0, 1.0e-3]])  # a wall y = 0, normal +y
+    row_kind = np.array([ROW_NONE, ROW_TRIANGLE, ROW_TRIANGLE])
+    rows = (row_kind, np.zeros(3, np.int32), np.full((3, 3), 1.0 / 3.0), np.tile([0.0, 1.0, 0.0], (3, 1)), np.zeros(3))
+    suture_q = np.array([[0.0, 5e-3, 5e-3], [2e-4, 3e-4, 2e-4], [2e-4, 3e-4, 2e-4]])  # nodes 1, 2: 0.2 mm off the wall
+    obstacle_gap = np.array([np.inf, 1.0e-3, -1.0e-4])  # node 1 well above the base, node 2 sunk into it
+    gap, normal = obstacle_gap.copy(), np.tile([0.0, 0.0, 1.0], (3, 1))
+    tissue_w, is_tissue = np.zeros(3), np.zeros(3, dtype=np.bool_)
+    tissue = diagonal(np.full(3, 2.0))
+    suture_contact_rows(nn, eps, rows, tri_vertices, tissue_q, tissue, suture_q, gap, normal, tissue_w, is_tissue)
+    np.testing.assert_array_equal(is_tissue, [False, True, False])
+    assert gap[1] == pytest.approx(3e-4 - eps) and normal[1] == pytest.approx([0.0, 1.0, 0.0])
+    assert tissue_w[1] == pytest.approx(3 * (1.0 / 3.0) ** 2 * 2.0)
+    assert gap[2] == obstacle_gap[2] and normal[2] == pytest.approx([0.0, 0.0, 1.0]) and tissue_w[2] == 0.0
+    z, row_lambda, moved = np.zeros((3, 7)), np.zeros(3), tissue_q.copy()
+    z[2, 6] = 1.0e-9  # the obstacle's push on node 2 is not the tissue's to take
+    apply_contact_reaction(nn, rows, tri_vertices, normal, z, is_tissue, tissue, row_lambda, moved)
+    np.testing.assert_array_equal(moved, tissue_q)
+    assert row_lambda[2] == 0.0
+    z[1, 6] = 1.0e-9  # the tissue row's push on node 1 is
+    apply_contact_reaction(nn, rows, tri_vertices, normal, z, is_tissue, tissue, row_lambda, moved)
+    assert row_lambda[1] == 1.0e-9 and np.all(moved[:, 1] < 0.0)

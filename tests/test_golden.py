@@ -45,10 +45,10 @@ CASES = (
     ("needle_insert_random", "SutureGym/NeedleInsert-v1", None, "random", 1, 200),
     ("needle_insert_randomized_expert", "SutureGym/NeedleInsert-v1", "needle_insert_randomized.yaml", "expert", 7, 300),
     ("needle_insert_pose_delta_random", "SutureGym/NeedleInsert-v1", "needle_insert_pose_delta.yaml", "random", 2, 120),
-    ("suture_throw_expert", "SutureGym/SutureThrow-v1", None, "expert", 0, 400),
-    ("suture_throw_random", "SutureGym/SutureThrow-v1", None, "random", 3, 200),
-    ("wound_closure_expert", "SutureGym/WoundClosure-v1", None, "expert", 0, 400),
-    ("wound_closure_random", "SutureGym/WoundClosure-v1", None, "random", 4, 200),
+    ("suture_throw_expert", "SutureGym/SutureThrow-v2", None, "expert", 0, 400),
+    ("suture_throw_random", "SutureGym/SutureThrow-v2", None, "random", 3, 200),
+    ("wound_closure_expert", "SutureGym/WoundClosure-v2", None, "expert", 0, 400),
+    ("wound_closure_random", "SutureGym/WoundClosure-v2", None, "random", 4, 200),
     ("needle_insert_goal_random", "SutureGym/NeedleInsertGoal-v1", None, "random", 5, 100),
 )
 

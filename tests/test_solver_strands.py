@@ -12,7 +12,15 @@ from suture_gym.sim.model import Control, Model, State
 from suture_gym.sim.needle import NeedleModel, NeedleState, VirtualCoupling
 from suture_gym.sim.quat import quat_to_matrix
 from suture_gym.sim.rod import RodModel, RodState, StaticObstacles, SutureParams, segment_strain
-from suture_gym.sim.scenes import WOUND_ARC_AXIS, WOUND_ARC_U, needle_circle_pose, two_bar_suturing, wound_tip_angle
+from suture_gym.sim.scenes import (
+    WOUND_ARC_AXIS,
+    WOUND_ARC_U,
+    add_strands,
+    needle_circle_pose,
+    two_bar_suturing,
+    two_bar_wound,
+    wound_tip_angle,
+)
 from suture_gym.sim.solver import PHASES, Solver
 
 DT = 1e-3
@@ -240,3 +248,31 @@ def test_reaction_balances_a_quasi_static_push():
     assert not state.diverged and state.coupling.punctures == 0
     assert np.linalg.norm(state.needle.body_vel) < 1e-3
     assert state.needle_reaction[2] == pytest.approx(-push[2], rel=0.1)
+
+
+def test_a_thread_draped_into_a_wound_rests_on_the_base_not_below_the_bars():
+    """The base under a two-bar wound is the thread's obstacle too: a thread draped into the gap rests on it.
+
+    Without it the gap is open below the bars, the thread falls through, and its slack hooks on the bars'
+    bottom edges; the bars' bottom faces (resting on the base) give suture nodes no node-triangle rows."""
+    length, width, height, gap = 0.024, 0.006, 0.006, 0.004
+    tissue = two_bar_wound(bar_size=(length, width, height), cells=(6, 2, 2), gap=gap)
+    needle = NeedleModel.from_shape(gravity_compensation=True)
+    pos, quat = needle_circle_pose(needle, np.zeros(3), WOUND_ARC_AXIS, WOUND_ARC_U, 0.0)
+    swage = np.array([0.001, width + 0.5 * gap, 0.016])  # above the gap, the needle clear of the bars
+    pos = pos + swage - (pos + quat_to_matrix(quat) @ needle.swage_pos_body)
+    scene = add_strands(tissue, (pos, quat), suture_params=SutureParams(length=0.02, node_count=21),
+                        suture_direction=(1.0, 0.0, -0.8))  # down along the gap, the tail 3.5 mm above the base
+    model, state = scene.model, scene.state
+    coupling, surface_q = model.coupling, model.tissue.particle_rest_q[model.coupling.surface.tri_vertices]
+    np.testing.assert_array_equal(coupling.tri_on_support, np.all(surface_q[:, :, 2] == 0.0, axis=1))
+    assert coupling.tri_on_support.sum() == 2 * 6 * 2 * 2  # two triangles per bottom cell of each bar
+    np.testing.assert_allclose(model.obstacles.plane_normal, [[0.0, 0.0, 1.0]])
+    solver, radius = Solver(), model.suture.radius
+    for _ in range(400):
+        solver.step(model, state, Control(), DT)
+    x = state.suture.node_pos
+    assert x[:, 2].min() > radius - 1e-6  # never below the base
+    assert x[-1, 2] < radius + 1e-6  # the tail lies on it, in the gap
+    assert width < x[-1, 1] < width + gap
+    assert not state.diverged

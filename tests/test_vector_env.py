@@ -17,7 +17,7 @@ def test_make_vec_uses_the_native_vector_env():
     assert isinstance(env, SutureVectorEnv) and env.num_envs == N
     assert env.max_episode_steps == MAX_EPISODE_STEPS["needle_insert"]
     assert env.observation_space.shape == (N, *env.single_observation_space.shape)
-    goal = gym.make_vec("SutureGym/SutureThrowGoal-v1", num_envs=2)
+    goal = gym.make_vec("SutureGym/SutureThrowGoal-v2", num_envs=2)
     assert set(goal.single_observation_space.spaces) == {"observation", "achieved_goal", "desired_goal"}
     env.close()
     goal.close()

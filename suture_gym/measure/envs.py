@@ -170,7 +170,7 @@ def check_needle_insert_scripted_accuracy() -> CheckResult:
 def check_suture_throw_scripted_thread() -> CheckResult:
     """The scripted surgeon's stitch in SutureThrow: thread pulled through the far edge's exit (m), at least
     the task's target, with the episode successful (entry and exit within tolerance) and no divergence."""
-    env_id, rate, speed = "SutureGym/SutureThrow-v1", 1.0, 0.02
+    env_id, rate, speed = "SutureGym/SutureThrow-v2", 1.0, 0.02
     run = _scripted_episode(env_id, rate, speed)
     target = gym.make(env_id).unwrapped.config.plan.thread_target
     measured = run["thread_through_m"] if run["is_success"] and not run["diverged"] else -math.inf

@@ -650,8 +650,9 @@ def apply_rod_solution(rod, needle, frames, contacts, z, lam, node_pos, seg_quat
     (exact exponential map), and the attachment impulse ``-z[0, :3]`` to the needle (rigid XPBD).
 
     ``z`` is added to ``lam``. Updates ``node_pos`` (N, 3), ``seg_quat`` (N-1, 4), ``needle_pos`` (3,),
-    ``needle_quat`` (4,), and adds contact pushes (m) to ``contact_push`` (argument groups in the module
-    docstring).
+    ``needle_quat`` (4,), and adds the pushes (m) of contacts with static obstacles (``contact_w == 0``; a
+    deformable one, the tissue, takes its share of the push instead) to ``contact_push`` (argument groups in
+    the module docstring).
     """
     node_inv_mass, seg_rest_length = rod[0], rod[1]
     has_needle, needle_inv_mass = needle[0], needle[1]
@@ -669,7 +670,7 @@ def apply_rod_solution(rod, needle, frames, contacts, z, lam, node_pos, seg_quat
             impulse[k] = z[i, 6] * contact_normal[i, k]
         inv_mass_times(rod, i, impulse, step)
         for k in range(3):
-            if contact_cap[i] == 0.0:  # pushes of contacts only: they set the obstacles' Coulomb friction
+            if contact_cap[i] == 0.0 and rod[5][i] == 0.0:  # pushes of static contacts: their Coulomb friction
                 contact_push[i, k] += step[k]
             if i == 0 and has_needle:
                 impulse[k] += z[0, k]

@@ -16,7 +16,7 @@ from suture_gym.sim.mesh import TetMesh, box_tet_grid
 from suture_gym.sim.model import Model, State, TissueMaterial, TissueModel, TissueState
 from suture_gym.sim.needle import NeedleModel, NeedleShape, NeedleState
 from suture_gym.sim.quat import quat_from_two_vectors, quat_to_matrix
-from suture_gym.sim.rod import RodModel, RodState, SutureParams
+from suture_gym.sim.rod import RodModel, RodState, StaticObstacles, SutureParams
 
 STANDARD_GRAVITY = 9.81  # m/s^2
 
@@ -389,6 +389,11 @@ def assemble(
     """The tissue ``scene`` with a needle, an optional suture and their coupling with the tissue: the one scene
     assembler, used by :func:`add_strands` and the environments alike.
 
+    The tissue's rigid supports (the base a pad or the bars rest on) are planes the suture cannot cross either
+    (``Model.obstacles``, with :class:`~suture_gym.sim.rod.StaticObstacles`' Coulomb friction): without them
+    the slack of a thread crossing a wound falls through the gap below the bars and hooks on their bottom
+    edges.
+
     Args:
         scene: a tissue scene (its tissue state is copied as the initial tissue state; no tissue: no coupling).
         needle: the needle model; ``needle_state`` its state at rest.
@@ -401,10 +406,14 @@ def assemble(
         A new :class:`Scene` with the same regions and a copy of the settings.
     """
     tissue = scene.model.tissue
-    coupling = None
+    coupling = obstacles = None
     if tissue is not None:
         coupling = CouplingModel.build(tissue, needle, suture, coupling_params or CouplingParams(), knot_tail=knot_tail)
-    model = Model(tissue=tissue, needle=needle, suture=suture, coupling=coupling, gravity=scene.model.gravity)
+        if suture is not None and tissue.support_offset.size:
+            obstacles = StaticObstacles(plane_point=tissue.support_normal * tissue.support_offset[:, None],
+                                        plane_normal=tissue.support_normal)
+    model = Model(tissue=tissue, needle=needle, suture=suture, coupling=coupling, gravity=scene.model.gravity,
+                  obstacles=obstacles)
     state = State.initial(model, needle=needle_state, suture=suture_state)
     if tissue is not None:
         state.tissue.assign(scene.state.tissue)

@@ -591,6 +591,7 @@ class Solver:
                     coupling.needle_node_count, coupling.params.resistance_eps, cwork.contact_rows,
                     coupling.surface.tri_vertices, state.tissue.particle_q, tissue_w,
                     rod_state.node_pos, work.contact_gap, work.contact_normal, cwork.suture_contact_w,
+                    cwork.suture_contact_tissue,
                 )  # fmt: skip
             if friction_rows is not None:
                 suture_friction_rows(
@@ -607,7 +608,7 @@ class Solver:
             if coupling is not None:
                 apply_contact_reaction(
                     coupling.needle_node_count, cwork.contact_rows, coupling.surface.tri_vertices,
-                    work.contact_normal, work.z, tissue_w, cwork.row_lambda,
+                    work.contact_normal, work.z, cwork.suture_contact_tissue, tissue_w, cwork.row_lambda,
                     state.tissue.particle_q,
                 )  # fmt: skip
             if friction_rows is not None:

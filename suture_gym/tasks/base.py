@@ -226,6 +226,13 @@ BUILTIN_VERSION_HISTORY = (
     "after the env ended the episode raises.",
     "v0: 3 kPa XPBD tissue and millinewton forces (puncture 5 mN, actions up to 0.05 N and 2e-4 N m).",
 )
+#: The thread tasks' version history: :data:`BUILTIN_VERSION_HISTORY` and the thread's own changes since.
+THREAD_VERSION_HISTORY = (
+    "v2 (issue 14): the base under the wound is the thread's obstacle (with Coulomb friction 0.3), and the "
+    "bars' bottom faces, which rest on it, no longer give the thread contact rows. In v1 the slack of the "
+    "thread crossing the wound fell through the gap below the bars and hooked on their bottom edges, and "
+    "the scripted expert tore the tissue in some randomised SutureThrow episodes.",
+) + BUILTIN_VERSION_HISTORY
 
 
 class Task(ABC):

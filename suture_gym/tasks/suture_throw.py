@@ -1,10 +1,10 @@
-"""``SutureGym/SutureThrow-v1``: one full stitch across both wound edges, thread pulled through to a target."""
+"""``SutureGym/SutureThrow-v2``: one full stitch across both wound edges, thread pulled through to a target."""
 
 from __future__ import annotations
 
 import numpy as np
 
-from suture_gym.tasks.base import BUILTIN_VERSION_HISTORY, Observables, Task
+from suture_gym.tasks.base import THREAD_VERSION_HISTORY, Observables, Task
 
 
 class SutureThrow(Task):
@@ -21,10 +21,10 @@ class SutureThrow(Task):
     """
 
     NAME = "suture_throw"
-    ENV_ID = "SutureGym/SutureThrow-v1"
-    GOAL_ENV_ID = "SutureGym/SutureThrowGoal-v1"
+    ENV_ID = "SutureGym/SutureThrow-v2"
+    GOAL_ENV_ID = "SutureGym/SutureThrowGoal-v2"
     MAX_EPISODE_STEPS = 2000
-    VERSION_HISTORY = BUILTIN_VERSION_HISTORY
+    VERSION_HISTORY = THREAD_VERSION_HISTORY
     CONFIG = {
         "scene": {"kind": "wound", "size": (0.012, 0.012, 0.008)},
         "suture": {"node_count": 31, "length": 0.03},

@@ -1,4 +1,4 @@
-"""``SutureGym/WoundClosure-v1``: several stitches and thread tension close the wound gap."""
+"""``SutureGym/WoundClosure-v2``: several stitches and thread tension close the wound gap."""
 
 from __future__ import annotations
 
@@ -6,7 +6,7 @@ import numpy as np
 
 from suture_gym.sim.rod import RodModel, RodState
 from suture_gym.sim.scenes import tent_rod
-from suture_gym.tasks.base import BUILTIN_VERSION_HISTORY, Observables, Task
+from suture_gym.tasks.base import THREAD_VERSION_HISTORY, Observables, Task
 from suture_gym.tasks.geometry import PlannedArc
 
 #: Distance outside the first entry at which the thread's free end starts, m.
@@ -25,10 +25,10 @@ class WoundClosure(Task):
     """
 
     NAME = "wound_closure"
-    ENV_ID = "SutureGym/WoundClosure-v1"
-    GOAL_ENV_ID = "SutureGym/WoundClosureGoal-v1"
+    ENV_ID = "SutureGym/WoundClosure-v2"
+    GOAL_ENV_ID = "SutureGym/WoundClosureGoal-v2"
     MAX_EPISODE_STEPS = 5000
-    VERSION_HISTORY = BUILTIN_VERSION_HISTORY
+    VERSION_HISTORY = THREAD_VERSION_HISTORY
     CONFIG = {
         "scene": {"kind": "wound", "size": (0.03, 0.012, 0.008)},
         "suture": {"node_count": 86, "length": 0.085, "knot_tail": 0.008},

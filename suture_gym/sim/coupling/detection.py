@@ -316,6 +316,10 @@ def coupling_detect(
         tissue.tet_indices, work.access_rows, work.access_count, state.strand_status, state.strand_path,
         work.node_rows,
     )  # fmt: skip
+    nn = model.needle_node_count
+    under = (work.row_kind[nn:] == ROW_TRIANGLE) & model.tri_on_support[work.row_tri[nn:]]
+    work.row_kind[nn:][under] = ROW_NONE
+    work.row_tri[nn:][under] = -1
     _wall_and_anchor_rows(model, state, work)
     if strand_q_start is not None and model.tri_rigid.any():
         rigid_crossings(model, work, tissue_q, strand_q_start, strand_q)

@@ -44,6 +44,10 @@ class CouplingModel:
         tri_tet_local: ``(F, 3) int8`` local index (0-3) in its tet of each vertex of each boundary triangle.
         tri_rigid: ``(F,) bool`` boundary triangles whose three vertices are pinned: faces glued to a rigid
             support (the base under the tissue, a clamp), which the strand can neither pierce nor leave through.
+        tri_on_support: ``(F,) bool`` boundary triangles lying on one of the tissue's support planes at rest
+            (the bottom of a pad or bar on its base): no suture node can come between them and the base, so
+            they get no node-triangle rows; the base itself is the suture's obstacle
+            (:func:`~suture_gym.sim.scenes.assemble`).
         surface: :class:`~suture_gym.sim.collision.TriangleSurface` of the tissue boundary (BVH at rest).
         tet_bvh: :class:`~suture_gym.sim.bvh.BVH` over the tissue tets at rest (path-node location).
         tissue_rest_q: ``(N, 3) float64`` the tissue's rest positions, m (the tissue model's array).
@@ -66,6 +70,7 @@ class CouplingModel:
     strand_friction: np.ndarray
     tri_tet_local: np.ndarray
     tri_rigid: np.ndarray
+    tri_on_support: np.ndarray
     surface: TriangleSurface
     tet_bvh: BVH
     tissue_rest_q: np.ndarray
@@ -134,6 +139,9 @@ class CouplingModel:
                 raise ValueError(f"knot_tail ({knot_tail} m) must be shorter than the suture ({suture_length:.4g} m)")
             knot_sigma = float(sigma[-1] - knot_tail)
         rigid = np.all(tissue.particle_inv_mass[tri] == 0.0, axis=1)
+        extent = float(np.ptp(tissue.particle_rest_q, axis=0).max())
+        plane_dist = np.abs(tissue.particle_rest_q[tri] @ tissue.support_normal.T - tissue.support_offset)  # (F,3,S)
+        on_support = np.any(np.all(plane_dist <= 1.0e-9 * extent, axis=1), axis=1)
         surface = build_triangle_surface(tri, rest)
         tet_bvh = build_bvh(tets, rest)
         surface_vertex, inverse = np.unique(tri, return_inverse=True)
@@ -161,7 +169,7 @@ class CouplingModel:
                     f"puncture_force {params.puncture_force} N): raise tip_length or tip_contact_radius"
                 )
         surface_vertex = surface_vertex.astype(np.int32)
-        for array in (sigma, seg_length, friction, local, rigid, surface_vertex, vertex_area, compliance):
+        for array in (sigma, seg_length, friction, local, rigid, on_support, surface_vertex, vertex_area, compliance):
             array.flags.writeable = False
         for bvh in (surface.bvh, tet_bvh):
             bvh.node_lo.flags.writeable = False
@@ -175,6 +183,7 @@ class CouplingModel:
             strand_friction=friction,
             tri_tet_local=local,
             tri_rigid=rigid,
+            tri_on_support=on_support,
             surface=surface,
             tet_bvh=tet_bvh,
             tissue_rest_q=rest,
@@ -368,7 +377,8 @@ class CouplingWork:
             masses ``W_j = w_j I + a_j t_j t_j^T`` of the suture nodes used by the projections this substep
             (:func:`embedded_inv_mass`), grouped as suture_mass ``(w, a, t)``.
         suture_contact_w: ``(Ns,)`` generalised inverse mass (1/kg) of the tissue point of each suture node's
-            contact row in the rod's solve.
+            contact row in the rod's solve; suture_contact_tissue: ``(Ns,) bool``, the node's row in the rod's
+            solve is its node-triangle row this iteration (not a static obstacle's).
         node_rows: the tuple ``(row_kind, row_tri, row_tissue, row_weight, row_tangent)`` and access_rows:
             ``(access_node, access_weight, access_rest, access_tri, access_bary)``, contact_rows: ``(row_kind,
             row_tri, row_bary, row_contact_normal, row_floor)`` and needle_rows: ``(row_kind,
@@ -423,6 +433,7 @@ class CouplingWork:
             self.row_weight, self.row_tangent, self.row_lambda, self.row_friction_lambda,
         )  # fmt: skip
         self.suture_contact_w = np.zeros(model.suture_node_count)
+        self.suture_contact_tissue = np.zeros(model.suture_node_count, dtype=np.bool_)
         self.tip_patch = (
             np.zeros(TIP_PATCH_CAPACITY, np.int32), np.zeros(TIP_PATCH_CAPACITY), np.zeros(1, np.int64), np.zeros(3),
             np.zeros(1),

@@ -181,17 +181,21 @@ def project_suture_path_rows(
 
 @njit(cache=True)
 def suture_contact_rows(needle_node_count, eps, contact_rows, tri_vertices, tissue_q, tissue, suture_q, out_gap,
-                        out_normal, out_tissue_w):  # fmt: skip
+                        out_normal, out_tissue_w, out_is_tissue):  # fmt: skip
     """The suture nodes' contact rows (:func:`node_surface_constraint` in the row's frame) as the rod's
     one-sided contact rows: ``gap = C - floor`` (``row_floor``, :func:`contact_floors`) at the current
     positions, ``normal = n``, and the generalised inverse mass of the surface point ``sum_v b_v^2 w_v`` (1/kg)
     in ``out_tissue_w``. Nodes without a contact row (and node 0, on the swage) keep their ``out_gap`` and
     ``out_normal`` (+inf, or a static obstacle's, :func:`~suture_gym.sim.rod.rod_detect_contacts`) and get
-    ``out_tissue_w = 0``. Writes ``out_gap`` (Ns,), ``out_normal`` (Ns, 3), ``out_tissue_w`` (Ns,)."""
+    ``out_tissue_w = 0``; so does a node whose static obstacle's gap is the smaller one (a node has one
+    contact row: the more violated constraint takes it, e.g. the base under a wound rather than the wound
+    face beside it). Writes ``out_gap`` (Ns,), ``out_normal`` (Ns, 3), ``out_tissue_w`` (Ns,) and
+    ``out_is_tissue`` (Ns,) bool, whether the node's row is its node-triangle row."""
     row_kind, row_tri, row_bary, row_contact_normal, row_floor = contact_rows
     nn = needle_node_count
     for j in range(suture_q.shape[0]):
         out_tissue_w[j] = 0.0
+        out_is_tissue[j] = False
         if j == 0:
             continue
         i = nn + j - 1
@@ -208,6 +212,9 @@ def suture_contact_rows(needle_node_count, eps, contact_rows, tri_vertices, tiss
             row_contact_normal[i],
             eps,
         )
+        if not c - row_floor[i] < out_gap[j]:
+            continue
+        out_is_tissue[j] = True
         out_gap[j] = c - row_floor[i]
         out_normal[j] = row_contact_normal[i]
         if is_diagonal(tissue):
@@ -218,17 +225,18 @@ def suture_contact_rows(needle_node_count, eps, contact_rows, tri_vertices, tiss
 
 
 @njit(cache=True)
-def apply_contact_reaction(needle_node_count, contact_rows, tri_vertices, contact_normal, z, tissue, row_lambda,
-                           tissue_q):  # fmt: skip
-    """Give the tissue the reaction of the rod's contact steps ``z[j, 6]`` (kg m) on suture nodes with a
-    node-triangle row: triangle vertex ``v`` moves by ``-w_v b_v z normal``, so the exchange conserves
-    momentum. Adds each step to ``row_lambda``. Updates ``tissue_q``."""
+def apply_contact_reaction(needle_node_count, contact_rows, tri_vertices, contact_normal, z, is_tissue, tissue,
+                           row_lambda, tissue_q):  # fmt: skip
+    """Give the tissue the reaction of the rod's contact steps ``z[j, 6]`` (kg m) on suture nodes whose row
+    in the solve is their node-triangle row (``is_tissue`` (Ns,), :func:`suture_contact_rows`): triangle vertex
+    ``v`` moves by ``-w_v b_v z normal``, so the exchange conserves momentum. Adds each step to
+    ``row_lambda``. Updates ``tissue_q``."""
     row_kind, row_tri, row_bary = contact_rows[:3]
     nn = needle_node_count
     for j in range(1, z.shape[0]):
         i = nn + j - 1
         dlam = z[j, 6]
-        if (row_kind[i] != ROW_TRIANGLE and row_kind[i] != ROW_WALL) or dlam == 0.0:
+        if not is_tissue[j] or (row_kind[i] != ROW_TRIANGLE and row_kind[i] != ROW_WALL) or dlam == 0.0:
             continue
         row_lambda[i] += dlam
         move_point(tissue, tri_vertices[row_tri[i]], row_bary[i], dlam, contact_normal[j], tissue_q)
