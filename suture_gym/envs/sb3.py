@@ -3,11 +3,11 @@
 Stable-Baselines3 (and torch) are an optional extra (``pip install suture_gym[train]``); this is the only module
 of the package that imports them.
 
-:func:`make_sb3_vec_env` builds the batched env in ``SAME_STEP`` autoreset mode and wraps it: SB3's conventions
-follow (an env that finishes resets within the step, its last observation is ``infos[i]["terminal_observation"]``
-and ``infos[i]["TimeLimit.truncated"]`` marks a time-limit end), and ``monitor=True`` adds SB3's ``VecMonitor``
-so episode returns and lengths reach the logger. Goal-conditioned envs work with ``HerReplayBuffer``:
-``env_method("compute_reward", ...)`` reaches the envs' batched ``compute_reward``.
+:func:`make_sb3_vec_env` builds the batched env of an env id in ``SAME_STEP`` autoreset mode and wraps it: SB3's
+conventions follow (an env that finishes resets within the step, its last observation is
+``infos[i]["terminal_observation"]`` and ``infos[i]["TimeLimit.truncated"]`` marks a time-limit end), and
+``monitor=True`` adds SB3's ``VecMonitor`` so episode returns and lengths reach the logger. Goal-conditioned ids
+work with ``HerReplayBuffer``: ``env_method("compute_reward", ...)`` reaches the envs' batched ``compute_reward``.
 """
 
 from __future__ import annotations
@@ -19,7 +19,7 @@ import numpy as np
 from gymnasium.vector import AutoresetMode
 from stable_baselines3.common.vec_env import VecEnv, VecMonitor
 
-from suture_gym.envs.vector import SutureVectorEnv
+from suture_gym.envs.vector import SutureVectorEnv, make_vector_env
 
 
 class SB3VecEnv(VecEnv):
@@ -101,15 +101,19 @@ class SB3VecEnv(VecEnv):
         return [envs[i] for i in indices]
 
 
-def make_sb3_vec_env(task: str = "needle_insert", num_envs: int = 1, *, monitor: bool = True, **kwargs) -> VecEnv:
-    """An SB3 ``VecEnv`` of ``num_envs`` batched suturing envs of ``task``.
+def make_sb3_vec_env(env_id: str, num_envs: int = 1, *, monitor: bool = True, **kwargs) -> VecEnv:
+    """An SB3 ``VecEnv`` of ``num_envs`` batched envs of the registered SutureGym id ``env_id``.
 
-    Keyword arguments go to :class:`~suture_gym.envs.vector.SutureVectorEnv` (``config``, ``action_mode``,
-    ``goal_conditioned``, ``max_episode_steps``, ``render_mode``). With ``monitor`` the result is wrapped in
-    SB3's ``VecMonitor`` (episode returns and lengths in ``info["episode"]``).
+    Args:
+        env_id: a registered id, flat (``"SutureGym/NeedleInsert-v1"``) or goal-conditioned
+            (``"SutureGym/NeedleInsertGoal-v1"``, for HER); anything else raises ValueError listing the ids.
+        num_envs: N >= 1.
+        monitor: wrap the result in SB3's ``VecMonitor`` (episode returns and lengths in ``info["episode"]``).
+        **kwargs: go to :func:`~suture_gym.envs.vector.make_vector_env` (``config``, ``action_mode``,
+            ``render_mode``, ``max_episode_steps``; the id's time limit by default).
     """
     if "autoreset_mode" in kwargs:
         raise ValueError("make_sb3_vec_env always uses AutoresetMode.SAME_STEP; do not pass autoreset_mode")
-    vector_env = SutureVectorEnv(task, num_envs, autoreset_mode=AutoresetMode.SAME_STEP, **kwargs)
+    vector_env = make_vector_env(env_id, num_envs, autoreset_mode=AutoresetMode.SAME_STEP, **kwargs)
     env = SB3VecEnv(vector_env)
     return VecMonitor(env) if monitor else env

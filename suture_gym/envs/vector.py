@@ -1,7 +1,7 @@
 """A natively batched :class:`gymnasium.vector.VectorEnv`: N simulators stepped in one process.
 
-Registered as every id's ``vector_entry_point``, so ``gym.make_vec(id, num_envs=N)`` returns a
-:class:`SutureVectorEnv` (no subprocesses, no per-env wrappers). It holds N unwrapped
+:func:`make_vector_env` builds one from an env id (``gym.make_vec`` builds Gymnasium's ``SyncVectorEnv`` instead,
+so that its ``wrappers`` argument works; see :mod:`suture_gym.envs.registry`). It holds N unwrapped
 :class:`~suture_gym.envs.base.SutureEnv` (or :class:`~suture_gym.envs.base.SutureGoalEnv`) instances, steps them
 in turn, batches their observations into fresh arrays and enforces the time limit itself. Autoreset follows
 gymnasium's modes: ``NEXT_STEP`` (the default: the step after an episode ends resets that env and returns its
@@ -20,7 +20,7 @@ from gymnasium.vector import AutoresetMode
 from gymnasium.vector.utils import batch_space, concatenate, create_empty_array
 
 from suture_gym.envs.base import EnvState
-from suture_gym.envs.registry import make_env
+from suture_gym.envs.registry import MAX_EPISODE_STEPS, env_id_task, make_env
 
 
 @dataclass(frozen=True)
@@ -64,8 +64,8 @@ class SutureVectorEnv(gym.vector.VectorEnv):
         render_mode: None or ``"rgb_array"`` (:meth:`render` returns one image per env).
         action_mode: as for :class:`~suture_gym.envs.base.SutureEnv`.
         goal_conditioned: batch :class:`~suture_gym.envs.base.SutureGoalEnv` instead.
-        max_episode_steps: truncate episodes after this many steps (None: no limit); ``gym.make_vec`` passes the
-            registered limit.
+        max_episode_steps: truncate episodes after this many steps (None: no limit); :func:`make_vector_env`
+            passes the id's registered limit.
         autoreset_mode: :class:`gymnasium.vector.AutoresetMode` ``NEXT_STEP`` or ``SAME_STEP``.
     """
 
@@ -230,3 +230,22 @@ class SutureVectorEnv(gym.vector.VectorEnv):
         """Fresh batched observation (array or dict of arrays) of N single observations."""
         out = create_empty_array(self.single_observation_space, self.num_envs)
         return concatenate(self.single_observation_space, observations, out)
+
+
+def make_vector_env(env_id: str, num_envs: int = 1, **kwargs) -> SutureVectorEnv:
+    """A :class:`SutureVectorEnv` of ``num_envs`` envs of the registered SutureGym id ``env_id`` (flat or
+    goal-conditioned), truncating at the id's time limit unless ``max_episode_steps`` is given.
+
+    Keyword arguments go to :class:`SutureVectorEnv` (``config``, ``render_mode``, ``action_mode``,
+    ``max_episode_steps``, ``autoreset_mode``); the id decides ``task`` and ``goal_conditioned``.
+
+    Raises:
+        ValueError: ``env_id`` is not a registered SutureGym id (the message lists them), or ``task`` /
+            ``goal_conditioned`` were passed.
+    """
+    task, goal_conditioned = env_id_task(env_id)
+    clash = sorted({"task", "goal_conditioned"} & set(kwargs))
+    if clash:
+        raise ValueError(f"make_vector_env takes the task from the env id {env_id!r}; do not pass {clash}")
+    kwargs.setdefault("max_episode_steps", MAX_EPISODE_STEPS[task])
+    return SutureVectorEnv(task, num_envs, goal_conditioned=goal_conditioned, **kwargs)
