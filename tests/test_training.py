@@ -41,6 +41,7 @@ def test_resolve_turns_strings_into_objects():
         ({"behaviour_cloning": {"episodes": 3}}, "episodes"),
         ({"behaviour_cloning": {"epochs": 0}}, "behaviour_cloning.epochs"),
         ({"behaviour_cloning": {"learning_rate": -1.0}}, "behaviour_cloning.learning_rate"),
+        ({"behaviour_cloning": {"dataset": 3}}, "behaviour_cloning.dataset"),
         ({"env_kwargs": "config.yaml"}, "env_kwargs"),
     ],
 )
@@ -56,7 +57,7 @@ def test_relative_env_config_is_taken_from_the_repository():
                          "behaviour_cloning": {"epochs": 5}})
     assert script["env_kwargs"]["config"] == str(ROOT / "configs" / "envs" / "needle_insert.yaml")
     assert script["behaviour_cloning"] == {"expert_episodes": 40, "epochs": 5, "batch_size": 256,
-                                           "learning_rate": 1e-3}
+                                           "learning_rate": 1e-3, "dataset": None}
 
 
 def test_missing_policy_or_env_entry_is_named(tmp_path):
