@@ -9,6 +9,7 @@ from gymnasium.vector import AutoresetMode
 
 import suture_gym.envs  # noqa: F401  (registers the ids)
 from suture_gym.envs import MAX_EPISODE_STEPS, SutureEnv, SutureVectorEnv, make_vector_env
+from suture_gym.envs.vector import default_workers
 
 N = 3
 
@@ -16,9 +17,10 @@ N = 3
 def test_make_vector_env_builds_the_native_env_of_an_id():
     env = make_vector_env("SutureGym/NeedleInsert-v1", N)
     assert isinstance(env, SutureVectorEnv) and env.num_envs == N
+    assert env.workers == default_workers(N) and 0 <= env.workers <= N  # parallel by default
     assert env.max_episode_steps == MAX_EPISODE_STEPS["needle_insert"]
     assert env.observation_space.shape == (N, *env.single_observation_space.shape)
-    goal = make_vector_env("SutureGym/SutureThrowGoal-v1", 2, max_episode_steps=7)
+    goal = make_vector_env("SutureGym/SutureThrowGoal-v1", 2, max_episode_steps=7, workers=0)
     assert set(goal.single_observation_space.spaces) == {"observation", "achieved_goal", "desired_goal"}
     assert goal.max_episode_steps == 7
     env.close()
@@ -49,8 +51,10 @@ def test_make_vec_applies_wrappers_in_the_default_mode():
     envs.close()
 
 
-def test_batch_equals_single_envs_bit_for_bit():
-    vec = SutureVectorEnv("needle_insert", N)
+@pytest.mark.parametrize("workers", [0, 2])
+def test_batch_equals_single_envs_bit_for_bit(workers):
+    vec = SutureVectorEnv("needle_insert", N, workers=workers)
+    assert vec.workers == workers
     singles = [SutureEnv("needle_insert") for _ in range(N)]
     rng = np.random.default_rng(2)
     obs, _ = vec.reset(seed=10)
@@ -66,10 +70,11 @@ def test_batch_equals_single_envs_bit_for_bit():
             assert info["reward_progress"] == infos["reward_progress"][i]
         if (terminations | truncations).any():
             break
+    vec.close()
 
 
 def test_next_step_autoreset_and_time_limit():
-    vec = SutureVectorEnv("needle_insert", 2, max_episode_steps=3)
+    vec = SutureVectorEnv("needle_insert", 2, max_episode_steps=3, workers=0)
     vec.reset(seed=0)
     zeros = np.zeros((2, 6), np.float32)
     for _ in range(2):
@@ -79,12 +84,14 @@ def test_next_step_autoreset_and_time_limit():
     assert truncations.all() and not terminations.any()
     obs, rewards, terminations, truncations, infos = vec.step(zeros)  # the autoreset step
     assert not (terminations.any() or truncations.any()) and not rewards.any()
-    first, _ = SutureVectorEnv("needle_insert", 2).reset(seed=0)
+    first, _ = SutureVectorEnv("needle_insert", 2, workers=0).reset(seed=0)
     assert obs.shape == first.shape and np.all(np.isfinite(obs))
 
 
-def test_same_step_autoreset_reports_the_final_observation():
-    vec = SutureVectorEnv("needle_insert", 2, max_episode_steps=2, autoreset_mode=AutoresetMode.SAME_STEP)
+@pytest.mark.parametrize("workers", [0, 2])
+def test_same_step_autoreset_reports_the_final_observation(workers):
+    vec = SutureVectorEnv("needle_insert", 2, max_episode_steps=2, autoreset_mode=AutoresetMode.SAME_STEP,
+                          workers=workers)
     start, _ = vec.reset(seed=0)
     zeros = np.zeros((2, 6), np.float32)
     vec.step(zeros)
@@ -93,10 +100,12 @@ def test_same_step_autoreset_reports_the_final_observation():
     assert infos["final_obs"][0].shape == vec.single_observation_space.shape
     assert not np.array_equal(infos["final_obs"][0], obs[0])
     assert infos["final_info"]["is_success"].shape == (2,)
+    vec.close()
 
 
-def test_reset_mask_and_snapshots():
-    vec = SutureVectorEnv("needle_insert", 2)
+@pytest.mark.parametrize("workers", [0, 2])
+def test_reset_mask_and_snapshots(workers):
+    vec = SutureVectorEnv("needle_insert", 2, workers=workers)
     obs0, _ = vec.reset(seed=1)
     moved, *_ = vec.step(np.full((2, 6), 0.2, np.float32))
     obs, infos = vec.reset(options={"reset_mask": np.array([True, False])})
@@ -110,13 +119,35 @@ def test_reset_mask_and_snapshots():
     assert [vec.step(a)[0].tobytes() for a in actions] == first
     with pytest.raises(ValueError, match="shape"):
         vec.step(np.zeros((3, 6)))
+    vec.close()
+
+
+def test_workers_hand_back_errors_and_close():
+    vec = SutureVectorEnv("needle_insert", 3, workers=2, max_episode_steps=5)
+    vec.reset(seed=0)
+    processes = list(vec._workers.processes)
+    with pytest.raises(AttributeError, match="live in the worker processes"):
+        vec.envs  # noqa: B018
+    assert vec.get_attr("render_mode") == (None, None, None)
+    assert vec.call("scripted_action", -2.7, indices=[2])[0].shape == (6,)
+    vec.set_attr("render_mode", ["a", "b"], indices=[0, 2])
+    assert vec.get_attr("render_mode") == ("a", None, "b")
+    with pytest.raises(TypeError, match="dtype") as raised:  # the env's own check, raised in a worker
+        vec.step(np.full((3, 6), "x"))
+    assert "Traceback" in str(raised.value.__cause__)  # the worker's traceback
+    _, rewards, *_ = vec.step(np.zeros((3, 6), np.float32))  # the pipes are still in step
+    assert rewards.shape == (3,)
+    with pytest.raises(ValueError, match=r"workers must be an integer from 0 to num_envs = 3, got 4"):
+        SutureVectorEnv("needle_insert", 3, workers=4)
+    vec.close()
+    assert not any(p.is_alive() for p in processes)
 
 
 def test_sb3_adapter_follows_vecenv_conventions():
     pytest.importorskip("stable_baselines3")
     from suture_gym.envs.sb3 import make_sb3_vec_env
 
-    env = make_sb3_vec_env("SutureGym/NeedleInsert-v1", 2, monitor=False, max_episode_steps=3)
+    env = make_sb3_vec_env("SutureGym/NeedleInsert-v1", 2, monitor=False, max_episode_steps=3, workers=2)
     env.seed(5)
     obs = env.reset()
     assert obs.shape == (2, *env.observation_space.shape)

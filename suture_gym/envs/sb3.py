@@ -75,30 +75,20 @@ class SB3VecEnv(VecEnv):
         self.vector_env.close()
 
     def get_images(self) -> Sequence[np.ndarray | None]:
-        return [env.render() for env in self.vector_env.envs]
+        return list(self.vector_env.call("render"))
 
     def get_attr(self, attr_name: str, indices=None) -> list[Any]:
-        return [getattr(env, attr_name) for env in self._targets(indices)]
+        return list(self.vector_env.get_attr(attr_name, indices=indices))
 
     def set_attr(self, attr_name: str, value: Any, indices=None) -> None:
-        for env in self._targets(indices):
-            setattr(env, attr_name, value)
+        targets = self.vector_env._indices(indices)
+        self.vector_env.set_attr(attr_name, [value] * len(targets), indices=targets)
 
     def env_method(self, method_name: str, *method_args, indices=None, **method_kwargs) -> list[Any]:
-        return [getattr(env, method_name)(*method_args, **method_kwargs) for env in self._targets(indices)]
+        return list(self.vector_env.call(method_name, *method_args, indices=indices, **method_kwargs))
 
     def env_is_wrapped(self, wrapper_class, indices=None) -> list[bool]:
-        return [False for _ in self._targets(indices)]
-
-    def _targets(self, indices) -> list:
-        if getattr(self, "vector_env", None) is None:
-            return []
-        envs = self.vector_env.envs
-        if indices is None:
-            return list(envs)
-        if isinstance(indices, int):
-            return [envs[indices]]
-        return [envs[i] for i in indices]
+        return [False for _ in self.vector_env._indices(indices)]
 
 
 def make_sb3_vec_env(env_id: str, num_envs: int = 1, *, monitor: bool = True, **kwargs) -> VecEnv:
