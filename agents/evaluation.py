@@ -92,6 +92,8 @@ def model_vecnormalize(policy: str, vecnormalize: str | Path | None = None) -> P
     from agents.training import _sibling
 
     model = Path(policy)
+    if not model.exists():
+        return None  # make_policy names the missing model
     found = _sibling(model, "vecnormalize", ".pkl")
     final = model.parent / "final_vecnormalize.pkl"
     if found is None and final.is_file():
