@@ -10,6 +10,7 @@ from __future__ import annotations
 
 import json
 import math
+import warnings
 from collections.abc import Callable
 from dataclasses import asdict, dataclass
 from pathlib import Path
@@ -51,8 +52,15 @@ def episode_end(info: dict, terminated: bool, truncated: bool) -> str:
     return "time_limit" if truncated and not terminated else "terminated"
 
 
-def make_policy(policy: str, env: gym.Env, seed: int) -> Callable[[object], np.ndarray]:
-    """A callable ``obs -> action`` for ``policy``: ``random``, ``expert`` or a path to an SB3 ``.zip``."""
+def make_policy(policy: str, env: gym.Env, seed: int,
+                vecnormalize: str | Path | None = None) -> Callable[[object], np.ndarray]:
+    """A callable ``obs -> action`` for ``policy``: ``random``, ``expert`` or a path to an SB3 ``.zip``.
+
+    ``vecnormalize`` is the path of the ``VecNormalize`` statistics a saved model's observations are normalised
+    with (see :func:`model_vecnormalize`); None: the model sees raw observations.
+    """
+    if policy in ("random", "expert") and vecnormalize is not None:
+        raise ValueError(f"VecNormalize statistics apply to a saved model, not to policy {policy!r}")
     if policy == "random":
         space = env.action_space
         space.seed(seed)
@@ -61,7 +69,44 @@ def make_policy(policy: str, env: gym.Env, seed: int) -> Callable[[object], np.n
         from agents.expert import ExpertPolicy
 
         return ExpertPolicy(env)
-    return _saved_model_policy(Path(policy), env)
+    return _saved_model_policy(Path(policy), env, vecnormalize)
+
+
+def model_vecnormalize(policy: str, vecnormalize: str | Path | None = None) -> Path | None:
+    """The ``VecNormalize`` statistics to evaluate the saved model ``policy`` with.
+
+    ``vecnormalize`` given: that file (FileNotFoundError naming it if it does not exist). Otherwise the
+    statistics saved with the model: a checkpoint's ``model_vecnormalize_<N>_steps.pkl`` beside
+    ``model_<N>_steps.zip``, else ``final_vecnormalize.pkl`` beside the model. When neither exists the model is
+    evaluated on raw observations, with a ``UserWarning`` unless the model's run config says it was trained
+    without normalisation (a model trained with it acts on meaningless inputs without its statistics).
+    ``random`` and ``expert`` take none (None).
+    """
+    if vecnormalize is not None:
+        path = Path(vecnormalize)
+        if not path.is_file():
+            raise FileNotFoundError(f"VecNormalize statistics {str(path)!r} do not exist")
+        return path
+    if policy in ("random", "expert"):
+        return None
+    from agents.training import _sibling
+
+    model = Path(policy)
+    if not model.exists():
+        return None  # make_policy names the missing model
+    found = _sibling(model, "vecnormalize", ".pkl")
+    final = model.parent / "final_vecnormalize.pkl"
+    if found is None and final.is_file():
+        found = final
+    if found is None:
+        hyperparams = run_config(model).get("hyperparams")
+        if hyperparams is None or hyperparams.get("normalize"):
+            why = "its run config says it was" if hyperparams else "it has no run config.yaml to say whether it was"
+            warnings.warn(f"no VecNormalize statistics found for {str(model)!r} (looked for its checkpoint's "
+                          f"model_vecnormalize_<N>_steps.pkl and {str(final)!r}) and {why} trained with "
+                          "VecNormalize: evaluating on raw observations; pass the statistics with --vecnormalize "
+                          "PATH", UserWarning, stacklevel=2)
+    return found
 
 
 def run_config(model_path: str | Path) -> dict:
@@ -76,8 +121,8 @@ def run_config(model_path: str | Path) -> dict:
     return {}
 
 
-def _saved_model_policy(path: Path, env: gym.Env) -> Callable[[object], np.ndarray]:
-    from agents.training import ALGOS, _sibling, algo_class
+def _saved_model_policy(path: Path, env: gym.Env, vecnormalize: Path | None) -> Callable[[object], np.ndarray]:
+    from agents.training import ALGOS, algo_class
 
     if not path.exists():
         raise FileNotFoundError(f"policy {str(path)!r} is neither 'random', 'expert' nor an existing model file")
@@ -96,11 +141,10 @@ def _saved_model_policy(path: Path, env: gym.Env) -> Callable[[object], np.ndarr
     if model is None:
         raise ValueError(f"{str(path)!r} is not a model of any of {candidates}")
     normalizer = None
-    stats = _sibling(path, "vecnormalize", ".pkl") or path.parent / "final_vecnormalize.pkl"
-    if stats.exists():
+    if vecnormalize is not None:
         import pickle
 
-        with open(stats, "rb") as fh:
+        with open(vecnormalize, "rb") as fh:
             normalizer = pickle.load(fh)
 
     def act(obs):
@@ -133,17 +177,19 @@ def evaluate(
     env_kwargs: dict | None = None,
     progress: bool = False,
     records_path: str | Path | None = None,
+    vecnormalize: str | Path | None = None,
 ) -> dict:
     """Run ``episodes`` episodes (env seeds ``seed, seed + 1, ...``) and summarise them.
 
     A saved model is evaluated on the env it was trained on: the ``env_kwargs`` of its run's ``config.yaml``
-    (the env config, say) apply unless ``env_kwargs`` overrides them.
+    (the env config, say) apply unless ``env_kwargs`` overrides them; and with the ``VecNormalize`` statistics
+    ``vecnormalize``, by default those saved with it (:func:`model_vecnormalize`, which warns when there are none).
 
     With ``records_path``, each episode's record is appended to that file as one JSON line as soon as the episode
     ends, so a long evaluation that is interrupted keeps what it measured.
 
     Returns:
-        ``{env_id, env_kwargs, policy, episodes, seed, success_rate, success_rate_stderr, mean_return,
+        ``{env_id, env_kwargs, policy, vecnormalize, episodes, seed, success_rate, success_rate_stderr, mean_return,
         std_return, mean_episode_length, mean_tip_force, max_haptic_force (N, over all episodes),
         median_max_haptic_force (N, the median of each episode's largest), mean_final_gap, diverged_episodes,
         end_counts,
@@ -154,8 +200,9 @@ def evaluate(
     if episodes <= 0:
         raise ValueError(f"episodes must be positive, got {episodes}")
     env_kwargs = {**trained_env_kwargs(policy), **(env_kwargs or {})}
+    stats = model_vecnormalize(policy, vecnormalize)
     env = gym.make(env_id, **env_kwargs)
-    act = make_policy(policy, env, seed)
+    act = make_policy(policy, env, seed, stats)
     records: list[Episode] = []
     iterator = range(episodes)
     if progress:
@@ -201,6 +248,7 @@ def evaluate(
         "env_id": env_id,
         "env_kwargs": {k: v for k, v in env_kwargs.items() if isinstance(v, (str, int, float, bool))},
         "policy": policy,
+        "vecnormalize": None if stats is None else str(stats),
         "episodes": episodes,
         "seed": seed,
         "success_rate": float(successes.mean()),

@@ -7,13 +7,16 @@ modes. Its default speeds are the task's (``SURGEON_TURN_RATE``, ``SURGEON_PULL_
 and the measurements drive the same surgeon (:mod:`suture_gym.tasks.surgeon`).
 
 Recording: ``python -m agents.expert --env ID --episodes N --out demos.npz`` writes the observations, actions,
-rewards, tip forces and episode boundaries of N seeded expert episodes (see :func:`record`).
+rewards, tip forces and episode boundaries of N seeded expert episodes (see :func:`record`);
+``--minari [DATASET_ID] [--root DIR]`` writes them as a Minari dataset instead (:func:`record_minari`).
 """
 
 from __future__ import annotations
 
 import argparse
 import sys
+from collections.abc import Iterator
+from dataclasses import dataclass, field
 from pathlib import Path
 
 import gymnasium as gym
@@ -28,6 +31,51 @@ class ExpertPolicy(ScriptedSurgeon):
     rad/s, ``pull_speed`` m/s)."""
 
 
+@dataclass
+class ExpertEpisode:
+    """One expert episode of ``T`` steps: ``reset_obs``/``reset_info`` from ``env.reset(seed=seed)``, then per
+    step the action taken, the observation, reward, flags and info ``env.step`` returned."""
+
+    seed: int
+    reset_obs: object
+    reset_info: dict
+    actions: list[np.ndarray] = field(default_factory=list)
+    observations: list = field(default_factory=list)
+    rewards: list[float] = field(default_factory=list)
+    terminated: list[bool] = field(default_factory=list)
+    truncated: list[bool] = field(default_factory=list)
+    infos: list[dict] = field(default_factory=list)
+
+
+def expert_episodes(env: gym.Env, episodes: int, seed: int = 0, progress: bool = False) -> Iterator[ExpertEpisode]:
+    """Run :class:`ExpertPolicy` on ``env`` for ``episodes`` episodes (env seeds ``seed, seed + 1, ...``), each
+    until it terminates or is truncated; yields each as an :class:`ExpertEpisode` once it ends."""
+    if isinstance(episodes, bool) or not isinstance(episodes, int) or episodes <= 0:
+        raise ValueError(f"episodes must be a positive integer, got {episodes!r}")
+    expert = ExpertPolicy(env)
+    iterator = range(episodes)
+    if progress:
+        from tqdm import tqdm
+
+        iterator = tqdm(iterator, desc=f"expert {env.spec.id if env.spec else ''}", unit="episode", file=sys.stderr)
+    for k in iterator:
+        obs, info = env.reset(seed=seed + k)
+        expert.reset()
+        episode = ExpertEpisode(seed + k, obs, info)
+        done = False
+        while not done:
+            action = expert(obs)
+            obs, reward, terminated, truncated, info = env.step(action)
+            episode.actions.append(action)
+            episode.observations.append(obs)
+            episode.rewards.append(float(reward))
+            episode.terminated.append(bool(terminated))
+            episode.truncated.append(bool(truncated))
+            episode.infos.append(info)
+            done = terminated or truncated
+        yield episode
+
+
 def record(env_id: str, episodes: int, out: str | Path, seed: int = 0, env_kwargs: dict | None = None,
            progress: bool = True) -> dict:
     """Run ``episodes`` expert episodes of ``env_id`` (env seeds ``seed, seed + 1, ...``) and save them to ``out``.
@@ -37,49 +85,33 @@ def record(env_id: str, episodes: int, out: str | Path, seed: int = 0, env_kwarg
     likewise, ``actions (T, 6) float32``, ``rewards (T,) float64``, ``tip_forces (T,) float64`` (N),
     ``tissue_costs (T,) float64``, ``terminated (T,) bool``, ``truncated (T,) bool``, ``episode_starts (E,)
     int64`` (index of each episode's first step), ``episode_lengths (E,) int64``, ``episode_success (E,)
-    bool``, ``episode_seeds (E,) int64``, and ``env_id``.
+    bool``, ``episode_seeds (E,) int64``, and ``env_id``. :func:`record_minari` writes the same episodes as a
+    Minari dataset.
 
     Returns:
         ``{episodes, steps, success_rate, out}``.
     """
     import suture_gym  # noqa: F401  (registers the ids)
 
-    if episodes <= 0:
-        raise ValueError(f"episodes must be positive, got {episodes}")
     env = gym.make(env_id, **(env_kwargs or {}))
-    expert = ExpertPolicy(env)
     obs_rows: list = []
     next_rows: list = []
     columns: dict[str, list] = {k: [] for k in ("actions", "rewards", "tip_forces", "tissue_costs", "terminated",
                                                  "truncated")}
     starts, lengths, success, seeds = [], [], [], []
-    iterator = range(episodes)
-    if progress:
-        from tqdm import tqdm
-
-        iterator = tqdm(iterator, desc=f"expert {env_id}", unit="episode", file=sys.stderr)
-    for k in iterator:
-        obs, info = env.reset(seed=seed + k)
-        expert.reset()
+    for episode in expert_episodes(env, episodes, seed, progress):
         starts.append(len(columns["actions"]))
-        seeds.append(seed + k)
-        done, length = False, 0
-        while not done:
-            action = expert(obs)
-            next_obs, reward, terminated, truncated, info = env.step(action)
-            obs_rows.append(obs)
-            next_rows.append(next_obs)
-            columns["actions"].append(action)
-            columns["rewards"].append(float(reward))
-            columns["tip_forces"].append(float(info.get("tip_force", 0.0)))
-            columns["tissue_costs"].append(float(info.get("cost", 0.0)))
-            columns["terminated"].append(bool(terminated))
-            columns["truncated"].append(bool(truncated))
-            obs = next_obs
-            length += 1
-            done = terminated or truncated
-        lengths.append(length)
-        success.append(bool(info.get("is_success", False)))
+        seeds.append(episode.seed)
+        obs_rows += [episode.reset_obs, *episode.observations[:-1]]
+        next_rows += episode.observations
+        columns["actions"] += episode.actions
+        columns["rewards"] += episode.rewards
+        columns["tip_forces"] += [float(i.get("tip_force", 0.0)) for i in episode.infos]
+        columns["tissue_costs"] += [float(i.get("cost", 0.0)) for i in episode.infos]
+        columns["terminated"] += episode.terminated
+        columns["truncated"] += episode.truncated
+        lengths.append(len(episode.actions))
+        success.append(bool(episode.infos[-1].get("is_success", False)))
     env.close()
     arrays: dict[str, np.ndarray] = {
         "actions": np.asarray(columns["actions"], dtype=np.float32),
@@ -108,16 +140,87 @@ def record(env_id: str, episodes: int, out: str | Path, seed: int = 0, env_kwarg
             "success_rate": float(np.mean(success)), "out": str(out)}
 
 
+def record_minari(env_id: str, episodes: int, dataset_id: str | None = None, seed: int = 0,
+                  env_kwargs: dict | None = None, root: str | Path | None = None, progress: bool = True,
+                  author: str | None = None, author_email: str | None = None,
+                  code_permalink: str | None = None) -> dict:
+    """Run ``episodes`` expert episodes of ``env_id`` (env seeds ``seed, seed + 1, ...``) and write them as the
+    Minari dataset ``dataset_id`` (default :func:`agents.datasets.default_dataset_id`) under
+    :func:`agents.datasets.datasets_root` ``(root)``; needs ``pip install 'suture_gym[data]'``.
+
+    Each episode holds Minari's ``observations`` (``T + 1``: the reset's, then each step's), ``actions (T, 6)``,
+    ``rewards``, ``terminations``, ``truncations``, the infos of :data:`agents.datasets.INFO_KEYS` (``T + 1``),
+    and its env seed; the dataset records the env spec (id, time limit, ``env_kwargs``, which must then be
+    JSON data such as a config path), so ``dataset.recover_environment()`` rebuilds the env after
+    ``import suture_gym``. ``author``, ``author_email`` and ``code_permalink`` go to the dataset's metadata
+    (Minari warns about each one left out).
+
+    Raises:
+        ValueError: a dataset ``dataset_id`` already exists there (Minari never overwrites one).
+
+    Returns:
+        ``{episodes, steps, success_rate, dataset_id, root}``.
+    """
+    import minari
+    from minari.data_collector import EpisodeBuffer
+
+    import suture_gym  # noqa: F401  (registers the ids)
+    from agents.datasets import INFO_KEYS, default_dataset_id, minari_root
+
+    dataset_id = dataset_id or default_dataset_id(env_id)
+    env = gym.make(env_id, **(env_kwargs or {}))
+    buffers, success, steps = [], [], 0
+    for episode in expert_episodes(env, episodes, seed, progress):
+        infos = [episode.reset_info, *episode.infos]
+        buffers.append(EpisodeBuffer(
+            id=len(buffers), seed=episode.seed, observations=_stack([episode.reset_obs, *episode.observations]),
+            actions=np.asarray(episode.actions, dtype=np.float32), rewards=episode.rewards,
+            terminations=episode.terminated, truncations=episode.truncated,
+            infos={key: np.asarray([i.get(key, default) for i in infos], dtype=dtype)
+                   for key, (default, dtype) in INFO_KEYS.items()}))
+        success.append(bool(episode.infos[-1].get("is_success", False)))
+        steps += len(episode.actions)
+    with minari_root(root) as folder:
+        minari.create_dataset_from_buffers(
+            dataset_id, buffers, env=env, eval_env=env, algorithm_name="agents.expert.ExpertPolicy",
+            author=author, author_email=author_email, code_permalink=code_permalink,
+            description=f"Scripted-expert (suture_gym agents.expert.ExpertPolicy) demonstrations of {env_id}, env "
+                        f"seeds {seed}-{seed + episodes - 1}; per-step infos {sorted(INFO_KEYS)}")
+    env.close()
+    return {"episodes": episodes, "steps": steps, "success_rate": float(np.mean(success)), "dataset_id": dataset_id,
+            "root": str(folder)}
+
+
+def _stack(observations: list):
+    """``(T + 1, D) float32`` of flat observations, or a dict of such arrays for Dict observations."""
+    if isinstance(observations[0], dict):
+        return {key: np.asarray([o[key] for o in observations], dtype=np.float32) for key in observations[0]}
+    return np.asarray(observations, dtype=np.float32)
+
+
 def main(argv: list[str] | None = None) -> int:
-    parser = argparse.ArgumentParser(description="Record scripted-expert demonstrations to an .npz file.")
+    parser = argparse.ArgumentParser(description="Record scripted-expert demonstrations to an .npz file or as a "
+                                                 "Minari dataset.")
     parser.add_argument("--env", required=True, help="env id, e.g. SutureGym/NeedleInsert-v1")
     parser.add_argument("--episodes", type=int, default=10)
     parser.add_argument("--seed", type=int, default=0, help="env seed of the first episode")
-    parser.add_argument("--out", required=True, help="output .npz path")
+    where = parser.add_mutually_exclusive_group(required=True)
+    where.add_argument("--out", help="output .npz path")
+    where.add_argument("--minari", nargs="?", const="", metavar="DATASET_ID",
+                       help="write a Minari dataset (default id: suture_gym/<Task>-v<k>/expert-v0)")
+    parser.add_argument("--root", default=None,
+                        help="Minari datasets folder (default: $MINARI_DATASETS_PATH, else ~/.minari/datasets)")
     args = parser.parse_args(argv)
-    summary = record(args.env, args.episodes, args.out, seed=args.seed)
+    if args.minari is None:
+        if args.root is not None:
+            parser.error("--root applies to --minari only")
+        summary = record(args.env, args.episodes, args.out, seed=args.seed)
+        where_to = summary["out"]
+    else:
+        summary = record_minari(args.env, args.episodes, args.minari or None, seed=args.seed, root=args.root)
+        where_to = f"Minari dataset {summary['dataset_id']!r} in {summary['root']}"
     print(f"{summary['episodes']} episodes, {summary['steps']} steps, success rate "
-          f"{summary['success_rate']:.2f} -> {summary['out']}")
+          f"{summary['success_rate']:.2f} -> {where_to}")
     return 0
 
 

@@ -28,8 +28,10 @@ CONFIG_DIR = ROOT / "configs" / "agents"
 #: Keys consumed by the training script rather than passed to the algorithm.
 SCRIPT_KEYS = ("n_timesteps", "policy", "n_envs", "normalize", "env_kwargs", "behaviour_cloning")
 #: Keys of ``behaviour_cloning`` and their defaults: expert episodes recorded (env seeds ``seed + 2000 ...``),
-#: passes over them, minibatch size, Adam step size.
-BC_KEYS = {"expert_episodes": 40, "epochs": 30, "batch_size": 256, "learning_rate": 1e-3}
+#: passes over them, minibatch size, Adam step size, and ``dataset``: the id of a Minari dataset of the same env
+#: id to clone instead of recording (:func:`agents.imitation.load_minari_demos`; looked up in
+#: ``$MINARI_DATASETS_PATH``, else ``~/.minari/datasets``).
+BC_KEYS = {"expert_episodes": 40, "epochs": 30, "batch_size": 256, "learning_rate": 1e-3, "dataset": None}
 
 _ACTIVATIONS = ("tanh", "relu", "elu", "leaky_relu")
 
@@ -103,6 +105,8 @@ def _behaviour_cloning(value: Any) -> dict[str, Any]:
             raise ValueError(f"behaviour_cloning.{key} must be an integer >= 1, got {out[key]!r}")
     if not isinstance(out["learning_rate"], (int, float)) or not out["learning_rate"] > 0:
         raise ValueError(f"behaviour_cloning.learning_rate must be > 0, got {out['learning_rate']!r}")
+    if out["dataset"] is not None and not (isinstance(out["dataset"], str) and out["dataset"]):
+        raise ValueError(f"behaviour_cloning.dataset must be a Minari dataset id, got {out['dataset']!r}")
     return out
 
 

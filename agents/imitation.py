@@ -3,7 +3,9 @@
 Why by hand: the one well-kept library for it (HumanCompatibleAI ``imitation``) pins its own Stable-Baselines3
 and Gymnasium versions; warm-starting an SB3 ``ActorCriticPolicy`` takes a few dozen lines on its own tensors.
 
-:func:`behaviour_clone` fits, on demonstrations recorded by :func:`agents.expert.record`:
+:func:`behaviour_clone` fits, on demonstrations recorded by :func:`agents.expert.record` (``.npz``,
+:func:`load_demos`) or read from a Minari dataset (:func:`load_minari_demos`, e.g. one written by
+:func:`agents.expert.record_minari`):
 
 * the policy's mean action to the expert's action (mean squared error; the policy's ``log_std`` is left as
   configured, so the fine-tuning still explores), and
@@ -58,6 +60,61 @@ def load_demos(path: str | Path) -> dict[str, np.ndarray]:
     return demos
 
 
+def load_minari_demos(dataset, root: str | Path | None = None) -> dict[str, np.ndarray]:
+    """The arrays :func:`behaviour_clone` takes, from a Minari dataset of a flat-observation env (any Minari
+    dataset, not only those :func:`agents.expert.record_minari` writes).
+
+    Args:
+        dataset: a :class:`minari.MinariDataset`, or the id of one under
+            :func:`agents.datasets.datasets_root` ``(root)``.
+        root: where to look for a dataset given by id.
+
+    Returns:
+        As :func:`load_demos`, over all T steps concatenated: ``observations (T, D) float32`` (the observation each
+        action was taken on), ``next_observations (T, D) float32``, ``actions (T, A) float32``, ``rewards (T,)
+        float64``, ``terminated (T,) bool``, ``truncated (T,) bool``, ``episode_starts (E,) int64``,
+        ``episode_lengths (E,) int64``; and, when the dataset records those infos, ``tip_forces (T,) float64``
+        (N), ``tissue_costs (T,) float64`` and ``episode_success (E,) bool`` (the last step's ``is_success``).
+    """
+    if isinstance(dataset, str):
+        from agents.datasets import load_dataset
+
+        dataset = load_dataset(dataset, root)
+    columns: dict[str, list] = {k: [] for k in ("observations", "next_observations", "actions", "rewards",
+                                                 "terminated", "truncated", "tip_forces", "tissue_costs")}
+    starts, lengths, success = [], [], []
+    for episode in dataset.iterate_episodes():
+        if isinstance(episode.observations, dict):
+            raise ValueError(f"Minari dataset {dataset.id!r}: behaviour cloning needs flat "
+                             "observations (no Dict observation spaces)")
+        starts.append(sum(lengths))
+        lengths.append(len(episode))
+        columns["observations"].append(episode.observations[:-1])
+        columns["next_observations"].append(episode.observations[1:])
+        columns["actions"].append(episode.actions)
+        columns["rewards"].append(episode.rewards)
+        columns["terminated"].append(episode.terminations)
+        columns["truncated"].append(episode.truncations)
+        infos = episode.infos or {}
+        for column, key in (("tip_forces", "tip_force"), ("tissue_costs", "cost")):
+            if key in infos:
+                columns[column].append(np.asarray(infos[key])[1:])  # infos[0] is the reset's
+        if "is_success" in infos:
+            success.append(bool(np.asarray(infos["is_success"])[-1]))
+    if not starts:
+        raise ValueError(f"Minari dataset {dataset.id!r} holds no episodes")
+    dtypes = {"observations": np.float32, "next_observations": np.float32, "actions": np.float32,
+              "rewards": np.float64, "terminated": bool, "truncated": bool, "tip_forces": np.float64,
+              "tissue_costs": np.float64}
+    demos = {key: np.concatenate(parts).astype(dtypes[key]) for key, parts in columns.items()
+             if len(parts) == len(starts)}
+    demos["episode_starts"] = np.asarray(starts, dtype=np.int64)
+    demos["episode_lengths"] = np.asarray(lengths, dtype=np.int64)
+    if len(success) == len(starts):
+        demos["episode_success"] = np.asarray(success, dtype=bool)
+    return demos
+
+
 def behaviour_clone(model, demos: dict[str, np.ndarray], epochs: int = 30, batch_size: int = 256,
                     learning_rate: float = 1e-3, seed: int = 0) -> dict[str, Any]:
     """Fit ``model``'s policy mean and value head to ``demos`` in place (see the module docstring).
@@ -65,8 +122,8 @@ def behaviour_clone(model, demos: dict[str, np.ndarray], epochs: int = 30, batch
     Args:
         model: an SB3 on-policy model (``PPO`` or ``A2C``) built on the training env; if that env is a
             ``VecNormalize`` its statistics are updated with the demonstrations.
-        demos: arrays from :func:`load_demos` (``observations (T, D)``, ``actions (T, A)``, ``rewards (T,)``,
-            ``episode_starts (E,)``).
+        demos: arrays from :func:`load_demos` or :func:`load_minari_demos` (``observations (T, D)``,
+            ``actions (T, A)``, ``rewards (T,)``, ``episode_starts (E,)``).
         epochs: passes over the demonstrations (>= 1).
         batch_size: minibatch size (>= 1).
         learning_rate: Adam step size.

@@ -3,7 +3,8 @@
 A run directory holds everything needed to reproduce and inspect the run::
 
     <run>/config.yaml          algo, env id, seed, the agent hyperparameters as written in the YAML, versions
-    <run>/demos.npz            expert demonstrations of the behaviour-cloning warm start (when configured)
+    <run>/demos.npz            expert demonstrations of the behaviour-cloning warm start (when configured and not
+                               read from a Minari dataset, ``behaviour_cloning.dataset``)
     <run>/tb/                  TensorBoard logs
     <run>/checkpoints/         periodic checkpoints (model, VecNormalize statistics, replay buffer for off-policy)
     <run>/eval/evaluations.npz periodic evaluation results (timesteps, returns, lengths, successes)
@@ -219,18 +220,33 @@ def train(
 
 def _warm_start(model, env_id: str, env_kwargs: dict, settings: dict, run_dir: Path, seed: int,
                 progress: bool) -> dict:
-    """Record the expert's demonstrations into ``<run>/demos.npz`` and clone them into ``model``
-    (:mod:`agents.imitation`); returns the cloning summary with the recording time (s) and expert success."""
-    from agents.expert import record
-    from agents.imitation import behaviour_clone, load_demos
+    """Clone demonstrations into ``model`` (:mod:`agents.imitation`): the Minari dataset ``settings["dataset"]``,
+    or else the expert's, recorded into ``<run>/demos.npz``. Returns the cloning summary with the time taken (s),
+    the source and the demonstrations' success rate (None when the dataset records none)."""
+    from agents.imitation import behaviour_clone, load_demos, load_minari_demos
 
     t0 = time.perf_counter()
-    demos = run_dir / "demos.npz"
-    recorded = record(env_id, settings["expert_episodes"], demos, seed=seed + 2000, env_kwargs=env_kwargs,
-                      progress=progress)
-    fit = behaviour_clone(model, load_demos(demos), epochs=settings["epochs"], batch_size=settings["batch_size"],
+    if settings["dataset"] is not None:
+        from agents.datasets import load_dataset
+
+        dataset = load_dataset(settings["dataset"])
+        recorded_on = dataset.env_spec.id if dataset.env_spec is not None else None
+        if recorded_on != env_id:
+            raise ValueError(f"behaviour_cloning.dataset {settings['dataset']!r} was recorded on {recorded_on!r}, "
+                             f"not on {env_id!r}")
+        demos = load_minari_demos(dataset)
+        source = {"dataset": settings["dataset"]}
+    else:
+        from agents.expert import record
+
+        recorded = record(env_id, settings["expert_episodes"], run_dir / "demos.npz", seed=seed + 2000,
+                          env_kwargs=env_kwargs, progress=progress)
+        demos = load_demos(recorded["out"])
+        source = {"dataset": None}
+    fit = behaviour_clone(model, demos, epochs=settings["epochs"], batch_size=settings["batch_size"],
                           learning_rate=settings["learning_rate"], seed=seed)
-    return {**fit, "expert_success_rate": recorded["success_rate"], "wall_s": round(time.perf_counter() - t0, 1)}
+    success = float(np.mean(demos["episode_success"])) if "episode_success" in demos else None
+    return {**fit, **source, "expert_success_rate": success, "wall_s": round(time.perf_counter() - t0, 1)}
 
 
 def _sibling(checkpoint: Path, kind: str, suffix: str) -> Path | None:

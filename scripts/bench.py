@@ -5,6 +5,7 @@ Usage::
     python scripts/bench.py            # table on stdout
     python scripts/bench.py --json     # list of {scene, tets, particles, strand_nodes, substep_ms, ...}
     python scripts/bench.py --only paper_cube_tissue
+    python scripts/bench.py --json --only vector_env cold_start   # parallel vector env; compile time from scratch
 
 Times are medians over repeated substeps after a warm-up (numba compilation excluded). Every entry gains
 ``realtime_factor``, simulated seconds per wall-clock second (see :func:`realtime_factor`).
@@ -62,7 +63,7 @@ def main(argv: list[str] | None = None) -> int:
         bar.set_postfix_str(name)
         entry = {"scene": name, **BENCHMARKS[name]()}
         entry["realtime_factor"] = realtime_factor(entry)
-        entry["machine"] = f"{platform.processor() or platform.machine()}, 1 thread"
+        entry.setdefault("machine", f"{platform.processor() or platform.machine()}, 1 thread")
         results.append(entry)
 
     if args.json:

@@ -4,6 +4,11 @@ Usage::
 
     python scripts/evaluate.py --env SutureGym/NeedleInsert-v1 --policy random --episodes 20 --json
     python scripts/evaluate.py --env SutureGym/NeedleInsert-v1 --policy runs/ppo_NeedleInsert_s0/best_model.zip
+    python scripts/evaluate.py --policy elsewhere/model.zip --vecnormalize elsewhere/vecnormalize.pkl
+
+A saved model is evaluated with the VecNormalize statistics saved beside it (``final_vecnormalize.pkl``, or a
+checkpoint's ``model_vecnormalize_<N>_steps.pkl``) unless ``--vecnormalize`` names others; when there are none
+it warns on stderr and evaluates on raw observations.
 
 Prints ``success_rate, mean_return, mean_episode_length, mean_tip_force, mean_final_gap`` (and more; the
 per-episode records with ``--per-episode``).
@@ -30,6 +35,9 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--seed", type=int, default=0, help="episode k uses env seed seed + k")
     parser.add_argument("--config", default=None,
                         help="env config overrides, a configs/envs/*.yaml path (default: a model's training config)")
+    parser.add_argument("--vecnormalize", default=None, metavar="PATH",
+                        help="VecNormalize statistics (.pkl) of a saved model (default: those saved beside it; "
+                             "a warning when there are none)")
     parser.add_argument("--json", action="store_true", help="print JSON")
     parser.add_argument("--per-episode", action="store_true", help="include per-episode records")
     parser.add_argument("--records", default=None,
@@ -39,8 +47,10 @@ def main(argv: list[str] | None = None) -> int:
         parser.error(f"--episodes must be positive, got {args.episodes}")
 
     env_kwargs = {"config": args.config} if args.config is not None else None
+    if args.vecnormalize is not None and args.policy in ("random", "expert"):
+        parser.error(f"--vecnormalize applies to a saved model, not to --policy {args.policy}")
     summary = evaluate(args.env, args.policy, args.episodes, seed=args.seed, env_kwargs=env_kwargs,
-                       progress=not args.json, records_path=args.records)
+                       progress=not args.json, records_path=args.records, vecnormalize=args.vecnormalize)
     if not args.per_episode:
         summary.pop("per_episode")
     if args.json:

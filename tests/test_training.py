@@ -41,6 +41,7 @@ def test_resolve_turns_strings_into_objects():
         ({"behaviour_cloning": {"episodes": 3}}, "episodes"),
         ({"behaviour_cloning": {"epochs": 0}}, "behaviour_cloning.epochs"),
         ({"behaviour_cloning": {"learning_rate": -1.0}}, "behaviour_cloning.learning_rate"),
+        ({"behaviour_cloning": {"dataset": 3}}, "behaviour_cloning.dataset"),
         ({"env_kwargs": "config.yaml"}, "env_kwargs"),
     ],
 )
@@ -56,7 +57,7 @@ def test_relative_env_config_is_taken_from_the_repository():
                          "behaviour_cloning": {"epochs": 5}})
     assert script["env_kwargs"]["config"] == str(ROOT / "configs" / "envs" / "needle_insert.yaml")
     assert script["behaviour_cloning"] == {"expert_episodes": 40, "epochs": 5, "batch_size": 256,
-                                           "learning_rate": 1e-3}
+                                           "learning_rate": 1e-3, "dataset": None}
 
 
 def test_missing_policy_or_env_entry_is_named(tmp_path):
@@ -96,6 +97,47 @@ def test_train_writes_run_resumes_and_evaluates(tmp_path, capsys):
     assert summary["episodes"] == 2 and summary["mean_episode_length"] == 200.0
     assert np.isfinite(summary["mean_return"])
     assert summary["mean_tip_force"] is None  # Pendulum reports no tip force
+
+
+def test_evaluation_uses_names_or_warns_about_vecnormalize_statistics(tmp_path, monkeypatch, capsys):
+    import importlib
+    import json
+    import shutil
+    import warnings
+    from pathlib import Path
+
+    common = dict(seed=0, n_timesteps=64, eval_freq=0, checkpoint_freq=0, progress_bar=False)
+    run = train("ppo", "Pendulum-v1", out_dir=tmp_path / "norm", hyperparams=TINY, **common)
+    stats = run.run_dir / "final_vecnormalize.pkl"
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")
+        beside = evaluate("Pendulum-v1", str(run.model_path), episodes=1, seed=5)
+        plain = train("ppo", "Pendulum-v1", out_dir=tmp_path / "plain", hyperparams={**TINY, "normalize": False},
+                      **common)
+        evaluate("Pendulum-v1", str(plain.model_path), episodes=1, seed=5)  # trained without: nothing to find
+    assert beside["vecnormalize"] == str(stats)
+
+    alone = tmp_path / "elsewhere" / "model.zip"  # a model without its run directory
+    alone.parent.mkdir()
+    shutil.copy(run.model_path, alone)
+    with pytest.warns(UserWarning, match=r"no VecNormalize statistics found for .*model\.zip.*--vecnormalize PATH"):
+        raw = evaluate("Pendulum-v1", str(alone), episodes=1, seed=5)
+    assert raw["vecnormalize"] is None and raw["mean_return"] != beside["mean_return"]
+    with pytest.raises(FileNotFoundError, match="nowhere.pkl"):
+        evaluate("Pendulum-v1", str(alone), episodes=1, vecnormalize=tmp_path / "nowhere.pkl")
+
+    for var in ("NUMBA_NUM_THREADS", "OMP_NUM_THREADS", "OPENBLAS_NUM_THREADS", "MKL_NUM_THREADS"):
+        monkeypatch.setenv(var, "1")  # the script's configure() sets them; restored after the test
+    monkeypatch.syspath_prepend(str(Path(__file__).resolve().parents[1] / "scripts"))
+    script = importlib.import_module("evaluate")
+    capsys.readouterr()
+    assert script.main(["--env", "Pendulum-v1", "--policy", str(alone), "--vecnormalize", str(stats),
+                        "--episodes", "1", "--seed", "5", "--json"]) == 0
+    named = json.loads(capsys.readouterr().out)
+    assert named["vecnormalize"] == str(stats) and named["mean_return"] == beside["mean_return"]
+    with pytest.raises(SystemExit):
+        script.main(["--policy", "random", "--vecnormalize", str(stats)])
+    assert "--vecnormalize applies to a saved model" in capsys.readouterr().err
 
 
 def test_resume_from_missing_checkpoint_is_named(tmp_path):

@@ -1,5 +1,6 @@
-"""The batched vector env (``gym.make_vec``) and the Stable-Baselines3 adapter: equality with single envs, both
-autoreset modes, time limits, reset masks, snapshots, and SB3's VecEnv conventions (PPO and HER smoke runs)."""
+"""The batched vector env (``make_vector_env``), ``gym.make_vec`` with wrappers, and the Stable-Baselines3 adapter:
+equality with single envs, both autoreset modes, time limits, reset masks, snapshots, and SB3's VecEnv conventions
+(PPO and HER smoke runs)."""
 
 import gymnasium as gym
 import numpy as np
@@ -7,24 +8,53 @@ import pytest
 from gymnasium.vector import AutoresetMode
 
 import suture_gym.envs  # noqa: F401  (registers the ids)
-from suture_gym.envs import MAX_EPISODE_STEPS, SutureEnv, SutureVectorEnv
+from suture_gym.envs import MAX_EPISODE_STEPS, SutureEnv, SutureVectorEnv, make_vector_env
+from suture_gym.envs.vector import default_workers
 
 N = 3
 
 
-def test_make_vec_uses_the_native_vector_env():
-    env = gym.make_vec("SutureGym/NeedleInsert-v1", num_envs=N)
+def test_make_vector_env_builds_the_native_env_of_an_id():
+    env = make_vector_env("SutureGym/NeedleInsert-v1", N)
     assert isinstance(env, SutureVectorEnv) and env.num_envs == N
+    assert env.workers == default_workers(N) and 0 <= env.workers <= N  # parallel by default
     assert env.max_episode_steps == MAX_EPISODE_STEPS["needle_insert"]
     assert env.observation_space.shape == (N, *env.single_observation_space.shape)
-    goal = gym.make_vec("SutureGym/SutureThrowGoal-v2", num_envs=2)
+    goal = make_vector_env("SutureGym/SutureThrowGoal-v2", 2, max_episode_steps=7, workers=0)
     assert set(goal.single_observation_space.spaces) == {"observation", "achieved_goal", "desired_goal"}
+    assert goal.max_episode_steps == 7
     env.close()
     goal.close()
 
 
-def test_batch_equals_single_envs_bit_for_bit():
-    vec = SutureVectorEnv("needle_insert", N)
+@pytest.mark.parametrize(("env_id", "message"), [
+    ("needle_insert", r"got 'needle_insert' \('needle_insert' is a task name; its env id is "
+                      r"'SutureGym/NeedleInsert-v1'\)"),
+    ("SutureGym/NeedleInsert-v9", r"SutureGym/NeedleInsert-v1.*SutureGym/NeedleInsertGoal-v1.*got "
+                                  r"'SutureGym/NeedleInsert-v9'"),
+])
+def test_a_bad_env_id_is_named_with_the_valid_ones(env_id, message):
+    with pytest.raises(ValueError, match=message):
+        make_vector_env(env_id, 1)
+
+
+def test_make_vec_applies_wrappers_in_the_default_mode():
+    def seven(env):
+        return gym.wrappers.TransformReward(env, lambda r: 7.0)
+
+    envs = gym.make_vec("SutureGym/NeedleInsert-v1", num_envs=2, wrappers=[seven])
+    assert all(isinstance(e, gym.wrappers.TransformReward) for e in envs.envs)
+    envs.reset(seed=0)
+    _, rewards, *_ = envs.step(np.zeros((2, 6), np.float32))
+    assert rewards.tolist() == [7.0, 7.0]
+    assert envs.envs[0].spec.max_episode_steps == MAX_EPISODE_STEPS["needle_insert"]
+    envs.close()
+
+
+@pytest.mark.parametrize("workers", [0, 2])
+def test_batch_equals_single_envs_bit_for_bit(workers):
+    vec = SutureVectorEnv("needle_insert", N, workers=workers)
+    assert vec.workers == workers
     singles = [SutureEnv("needle_insert") for _ in range(N)]
     rng = np.random.default_rng(2)
     obs, _ = vec.reset(seed=10)
@@ -40,10 +70,11 @@ def test_batch_equals_single_envs_bit_for_bit():
             assert info["reward_progress"] == infos["reward_progress"][i]
         if (terminations | truncations).any():
             break
+    vec.close()
 
 
 def test_next_step_autoreset_and_time_limit():
-    vec = SutureVectorEnv("needle_insert", 2, max_episode_steps=3)
+    vec = SutureVectorEnv("needle_insert", 2, max_episode_steps=3, workers=0)
     vec.reset(seed=0)
     zeros = np.zeros((2, 6), np.float32)
     for _ in range(2):
@@ -53,12 +84,14 @@ def test_next_step_autoreset_and_time_limit():
     assert truncations.all() and not terminations.any()
     obs, rewards, terminations, truncations, infos = vec.step(zeros)  # the autoreset step
     assert not (terminations.any() or truncations.any()) and not rewards.any()
-    first, _ = SutureVectorEnv("needle_insert", 2).reset(seed=0)
+    first, _ = SutureVectorEnv("needle_insert", 2, workers=0).reset(seed=0)
     assert obs.shape == first.shape and np.all(np.isfinite(obs))
 
 
-def test_same_step_autoreset_reports_the_final_observation():
-    vec = SutureVectorEnv("needle_insert", 2, max_episode_steps=2, autoreset_mode=AutoresetMode.SAME_STEP)
+@pytest.mark.parametrize("workers", [0, 2])
+def test_same_step_autoreset_reports_the_final_observation(workers):
+    vec = SutureVectorEnv("needle_insert", 2, max_episode_steps=2, autoreset_mode=AutoresetMode.SAME_STEP,
+                          workers=workers)
     start, _ = vec.reset(seed=0)
     zeros = np.zeros((2, 6), np.float32)
     vec.step(zeros)
@@ -67,10 +100,12 @@ def test_same_step_autoreset_reports_the_final_observation():
     assert infos["final_obs"][0].shape == vec.single_observation_space.shape
     assert not np.array_equal(infos["final_obs"][0], obs[0])
     assert infos["final_info"]["is_success"].shape == (2,)
+    vec.close()
 
 
-def test_reset_mask_and_snapshots():
-    vec = SutureVectorEnv("needle_insert", 2)
+@pytest.mark.parametrize("workers", [0, 2])
+def test_reset_mask_and_snapshots(workers):
+    vec = SutureVectorEnv("needle_insert", 2, workers=workers)
     obs0, _ = vec.reset(seed=1)
     moved, *_ = vec.step(np.full((2, 6), 0.2, np.float32))
     obs, infos = vec.reset(options={"reset_mask": np.array([True, False])})
@@ -84,13 +119,35 @@ def test_reset_mask_and_snapshots():
     assert [vec.step(a)[0].tobytes() for a in actions] == first
     with pytest.raises(ValueError, match="shape"):
         vec.step(np.zeros((3, 6)))
+    vec.close()
+
+
+def test_workers_hand_back_errors_and_close():
+    vec = SutureVectorEnv("needle_insert", 3, workers=2, max_episode_steps=5)
+    vec.reset(seed=0)
+    processes = list(vec._workers.processes)
+    with pytest.raises(AttributeError, match="live in the worker processes"):
+        vec.envs  # noqa: B018
+    assert vec.get_attr("render_mode") == (None, None, None)
+    assert vec.call("scripted_action", -2.7, indices=[2])[0].shape == (6,)
+    vec.set_attr("render_mode", ["a", "b"], indices=[0, 2])
+    assert vec.get_attr("render_mode") == ("a", None, "b")
+    with pytest.raises(TypeError, match="dtype") as raised:  # the env's own check, raised in a worker
+        vec.step(np.full((3, 6), "x"))
+    assert "Traceback" in str(raised.value.__cause__)  # the worker's traceback
+    _, rewards, *_ = vec.step(np.zeros((3, 6), np.float32))  # the pipes are still in step
+    assert rewards.shape == (3,)
+    with pytest.raises(ValueError, match=r"workers must be an integer from 0 to num_envs = 3, got 4"):
+        SutureVectorEnv("needle_insert", 3, workers=4)
+    vec.close()
+    assert not any(p.is_alive() for p in processes)
 
 
 def test_sb3_adapter_follows_vecenv_conventions():
     pytest.importorskip("stable_baselines3")
     from suture_gym.envs.sb3 import make_sb3_vec_env
 
-    env = make_sb3_vec_env("needle_insert", 2, monitor=False, max_episode_steps=3)
+    env = make_sb3_vec_env("SutureGym/NeedleInsert-v1", 2, monitor=False, max_episode_steps=3, workers=2)
     env.seed(5)
     obs = env.reset()
     assert obs.shape == (2, *env.observation_space.shape)
@@ -103,6 +160,13 @@ def test_sb3_adapter_follows_vecenv_conventions():
     assert env.get_attr("render_mode") == [None, None]
     assert env.env_method("scripted_action", -2.7, indices=[1])[0].shape == (6,)
     env.close()
+    default = make_sb3_vec_env("SutureGym/NeedleInsert-v1", 1, monitor=False)
+    assert default.vector_env.max_episode_steps == MAX_EPISODE_STEPS["needle_insert"]  # the id's time limit
+    default.close()
+    with pytest.raises(ValueError, match=r"got 'needle_insert' \('needle_insert' is a task name"):
+        make_sb3_vec_env("needle_insert", 1)
+    with pytest.raises(ValueError, match=r"do not pass \['goal_conditioned'\]"):
+        make_sb3_vec_env("SutureGym/NeedleInsert-v1", 1, goal_conditioned=True)
 
 
 def test_sb3_ppo_and_her_smoke():
@@ -111,9 +175,9 @@ def test_sb3_ppo_and_her_smoke():
 
     from suture_gym.envs.sb3 import make_sb3_vec_env
 
-    env = make_sb3_vec_env("needle_insert", 2, max_episode_steps=20)
+    env = make_sb3_vec_env("SutureGym/NeedleInsert-v1", 2, max_episode_steps=20)
     PPO("MlpPolicy", env, n_steps=16, batch_size=16, n_epochs=1, seed=0, device="cpu").learn(32)
-    goal_env = make_sb3_vec_env("needle_insert", 1, goal_conditioned=True, max_episode_steps=10)
+    goal_env = make_sb3_vec_env("SutureGym/NeedleInsertGoal-v1", 1, max_episode_steps=10)
     model = SAC("MultiInputPolicy", goal_env, replay_buffer_class=HerReplayBuffer, learning_starts=20,
                 replay_buffer_kwargs={"copy_info_dict": True}, batch_size=16, seed=0, device="cpu")
     model.learn(40)

@@ -9,9 +9,10 @@
 Each id is one line below: :func:`~suture_gym.envs.registry.register_task` derives the ids, the time limit
 (:data:`MAX_EPISODE_STEPS`), the env class (``help(env.unwrapped)`` documents the id) and the config defaults
 from the task class. ``gym.make(id, config=..., render_mode=..., action_mode=...)`` builds one env (a subclass
-of :class:`SutureEnv` or :class:`SutureGoalEnv`); ``gym.make_vec(id, num_envs=N)`` builds the batched
-:class:`SutureVectorEnv`; :func:`suture_gym.envs.sb3.make_sb3_vec_env` adapts that to Stable-Baselines3
-(optional extra).
+of :class:`SutureEnv` or :class:`SutureGoalEnv`); ``gym.make_vec(id, num_envs=N, wrappers=[...])`` builds
+Gymnasium's ``SyncVectorEnv`` of wrapped envs; :func:`make_vector_env` builds the natively batched
+:class:`SutureVectorEnv` of an id, and :func:`suture_gym.envs.sb3.make_sb3_vec_env` adapts that to
+Stable-Baselines3 (optional extra).
 """
 
 from __future__ import annotations
@@ -23,12 +24,13 @@ from suture_gym.envs.registry import (
     GOAL_ENV_IDS,
     MAX_EPISODE_STEPS,
     TASK_CLASSES,
+    env_id_task,
     make_env,
     register_task,
     registered_tasks,
     task_class,
 )
-from suture_gym.envs.vector import SutureVectorEnv
+from suture_gym.envs.vector import SutureVectorEnv, make_vector_env
 from suture_gym.tasks import NeedleInsert, SutureThrow, WoundClosure
 
 register_task(NeedleInsert)
@@ -46,8 +48,10 @@ __all__ = [
     "SutureGoalEnv",
     "SutureVectorEnv",
     "default_config",
+    "env_id_task",
     "load_config",
     "make_env",
+    "make_vector_env",
     "register_task",
     "registered_tasks",
     "save_config",

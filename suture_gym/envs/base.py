@@ -21,9 +21,8 @@ speed above ``solver.max_speed``; or a non-finite observation or reward): a fail
 :meth:`~suture_gym.tasks.Task.diverged` (``-w_failure`` and the banked progress handed back, every other term 0).
 ``truncated`` at the time limit, which comes from registration (``TimeLimit``). Once the env has ended an
 episode (``terminated``), ``step`` raises RuntimeError until ``reset``; Gymnasium's
-``TimeLimit`` does not stop a step after its own truncation, and cannot be told to without breaking
-``gym.make_vec`` (a spec with ``additional_wrappers`` has no vector entry point). ``render`` before the first
-``reset`` raises RuntimeError too.
+``TimeLimit`` does not stop a step after its own truncation. ``render`` before the first ``reset`` raises
+RuntimeError too.
 
 ``info`` at every step: ``is_success``, ``punctured``, ``tip_force`` (N), ``haptic_wrench`` (``(6,) float64``
 ``[N, N m]``: the reaction the tissue and thread exert on the needle, about the grip point, at the step's last

@@ -5,6 +5,11 @@ From the class's attributes (see :class:`~suture_gym.tasks.Task`) registration m
 of its own whose docstring documents the id (``help(env.unwrapped)``), and the config defaults (the typed
 defaults overridden by ``CONFIG``, :func:`~suture_gym.envs.config.default_config`). Adding a task is its own
 file plus one ``register_task(MyTask)`` line.
+
+The ids register no ``vector_entry_point``: Gymnasium refuses ``wrappers`` in that mode, so
+``gym.make_vec(id, n, wrappers=[...])`` builds its ``SyncVectorEnv`` (or, with ``vectorization_mode="async"``,
+``AsyncVectorEnv``) of wrapped envs. The natively batched env is
+:func:`suture_gym.envs.vector.make_vector_env` (and, for Stable-Baselines3, ``suture_gym.envs.sb3.make_sb3_vec_env``).
 """
 
 from __future__ import annotations
@@ -38,6 +43,24 @@ def task_class(name: str) -> type[Task]:
     if cls is None:
         raise ValueError(f"task must be one of {list(TASK_CLASSES)}, got {name!r}")
     return cls
+
+
+def env_id_task(env_id: str) -> tuple[str, bool]:
+    """``(task name, goal_conditioned)`` of the registered SutureGym env id ``env_id``.
+
+    Raises:
+        ValueError: ``env_id`` is not a registered SutureGym id; the message names it and lists the registered
+            ids (and, for a task name, says which id it has).
+    """
+    if env_id in ENV_IDS:
+        return ENV_IDS[env_id], False
+    if env_id in GOAL_ENV_IDS:
+        return GOAL_ENV_IDS[env_id], True
+    hint = ""
+    if isinstance(env_id, str) and env_id in TASK_CLASSES:
+        hint = f" ({env_id!r} is a task name; its env id is {TASK_CLASSES[env_id].ENV_ID!r})"
+    raise ValueError(f"env_id must be a registered SutureGym env id, one of {[*ENV_IDS, *GOAL_ENV_IDS]}; "
+                     f"got {env_id!r}{hint}")
 
 
 def _check_task_class(cls) -> None:
@@ -87,7 +110,6 @@ def register_task(cls: type[Task]) -> type[Task]:
         gym.register(
             id=env_id,
             entry_point=f"{__name__}:make_env",
-            vector_entry_point="suture_gym.envs.vector:SutureVectorEnv",
             max_episode_steps=cls.MAX_EPISODE_STEPS,
             kwargs={"task": cls.NAME, "goal_conditioned": goal_conditioned},
         )
@@ -110,6 +132,7 @@ __all__ = [
     "GOAL_ENV_IDS",
     "MAX_EPISODE_STEPS",
     "TASK_CLASSES",
+    "env_id_task",
     "make_env",
     "register_task",
     "registered_tasks",

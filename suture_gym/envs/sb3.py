@@ -3,11 +3,11 @@
 Stable-Baselines3 (and torch) are an optional extra (``pip install suture_gym[train]``); this is the only module
 of the package that imports them.
 
-:func:`make_sb3_vec_env` builds the batched env in ``SAME_STEP`` autoreset mode and wraps it: SB3's conventions
-follow (an env that finishes resets within the step, its last observation is ``infos[i]["terminal_observation"]``
-and ``infos[i]["TimeLimit.truncated"]`` marks a time-limit end), and ``monitor=True`` adds SB3's ``VecMonitor``
-so episode returns and lengths reach the logger. Goal-conditioned envs work with ``HerReplayBuffer``:
-``env_method("compute_reward", ...)`` reaches the envs' batched ``compute_reward``.
+:func:`make_sb3_vec_env` builds the batched env of an env id in ``SAME_STEP`` autoreset mode and wraps it: SB3's
+conventions follow (an env that finishes resets within the step, its last observation is
+``infos[i]["terminal_observation"]`` and ``infos[i]["TimeLimit.truncated"]`` marks a time-limit end), and
+``monitor=True`` adds SB3's ``VecMonitor`` so episode returns and lengths reach the logger. Goal-conditioned ids
+work with ``HerReplayBuffer``: ``env_method("compute_reward", ...)`` reaches the envs' batched ``compute_reward``.
 """
 
 from __future__ import annotations
@@ -19,7 +19,7 @@ import numpy as np
 from gymnasium.vector import AutoresetMode
 from stable_baselines3.common.vec_env import VecEnv, VecMonitor
 
-from suture_gym.envs.vector import SutureVectorEnv
+from suture_gym.envs.vector import SutureVectorEnv, make_vector_env
 
 
 class SB3VecEnv(VecEnv):
@@ -75,41 +75,35 @@ class SB3VecEnv(VecEnv):
         self.vector_env.close()
 
     def get_images(self) -> Sequence[np.ndarray | None]:
-        return [env.render() for env in self.vector_env.envs]
+        return list(self.vector_env.call("render"))
 
     def get_attr(self, attr_name: str, indices=None) -> list[Any]:
-        return [getattr(env, attr_name) for env in self._targets(indices)]
+        return list(self.vector_env.get_attr(attr_name, indices=indices))
 
     def set_attr(self, attr_name: str, value: Any, indices=None) -> None:
-        for env in self._targets(indices):
-            setattr(env, attr_name, value)
+        targets = self.vector_env._indices(indices)
+        self.vector_env.set_attr(attr_name, [value] * len(targets), indices=targets)
 
     def env_method(self, method_name: str, *method_args, indices=None, **method_kwargs) -> list[Any]:
-        return [getattr(env, method_name)(*method_args, **method_kwargs) for env in self._targets(indices)]
+        return list(self.vector_env.call(method_name, *method_args, indices=indices, **method_kwargs))
 
     def env_is_wrapped(self, wrapper_class, indices=None) -> list[bool]:
-        return [False for _ in self._targets(indices)]
-
-    def _targets(self, indices) -> list:
-        if getattr(self, "vector_env", None) is None:
-            return []
-        envs = self.vector_env.envs
-        if indices is None:
-            return list(envs)
-        if isinstance(indices, int):
-            return [envs[indices]]
-        return [envs[i] for i in indices]
+        return [False for _ in self.vector_env._indices(indices)]
 
 
-def make_sb3_vec_env(task: str = "needle_insert", num_envs: int = 1, *, monitor: bool = True, **kwargs) -> VecEnv:
-    """An SB3 ``VecEnv`` of ``num_envs`` batched suturing envs of ``task``.
+def make_sb3_vec_env(env_id: str, num_envs: int = 1, *, monitor: bool = True, **kwargs) -> VecEnv:
+    """An SB3 ``VecEnv`` of ``num_envs`` batched envs of the registered SutureGym id ``env_id``.
 
-    Keyword arguments go to :class:`~suture_gym.envs.vector.SutureVectorEnv` (``config``, ``action_mode``,
-    ``goal_conditioned``, ``max_episode_steps``, ``render_mode``). With ``monitor`` the result is wrapped in
-    SB3's ``VecMonitor`` (episode returns and lengths in ``info["episode"]``).
+    Args:
+        env_id: a registered id, flat (``"SutureGym/NeedleInsert-v1"``) or goal-conditioned
+            (``"SutureGym/NeedleInsertGoal-v1"``, for HER); anything else raises ValueError listing the ids.
+        num_envs: N >= 1.
+        monitor: wrap the result in SB3's ``VecMonitor`` (episode returns and lengths in ``info["episode"]``).
+        **kwargs: go to :func:`~suture_gym.envs.vector.make_vector_env` (``config``, ``action_mode``,
+            ``render_mode``, ``max_episode_steps``; the id's time limit by default).
     """
     if "autoreset_mode" in kwargs:
         raise ValueError("make_sb3_vec_env always uses AutoresetMode.SAME_STEP; do not pass autoreset_mode")
-    vector_env = SutureVectorEnv(task, num_envs, autoreset_mode=AutoresetMode.SAME_STEP, **kwargs)
+    vector_env = make_vector_env(env_id, num_envs, autoreset_mode=AutoresetMode.SAME_STEP, **kwargs)
     env = SB3VecEnv(vector_env)
     return VecMonitor(env) if monitor else env

@@ -1,4 +1,5 @@
-"""Environment benchmarks (env steps per second of every registered id, and of the batched vector env) and two
+"""Environment benchmarks (env steps per second of every registered id; of the batched vector env on 1, 2 and 4
+envs, ``vector_env``; seconds from an empty numba cache to each task's first step, ``cold_start``) and two
 end-to-end checks that the tasks can be done: the scripted surgeon's bite accuracy in NeedleInsert and its
 thread pulled through in SutureThrow.
 
@@ -18,12 +19,14 @@ timed too), warms up (numba compilation excluded) and then times env steps on on
 from __future__ import annotations
 
 import math
+import os
+import platform
 import time
 
 import gymnasium as gym
 import numpy as np
 
-import suture_gym.envs  # noqa: F401  (registers the ids)
+import suture_gym.envs  # registers the ids
 from suture_gym.envs import ENV_IDS
 from suture_gym.envs.vector import SutureVectorEnv
 from suture_gym.measure.registry import CheckResult, benchmark, check
@@ -33,7 +36,6 @@ WARMUP_STEPS = 50
 #: Tip-angle advance of the scripted surgeon in the scripted benchmark, rad/s.
 SCRIPTED_TURN_RATE = 2.0
 TIMED_STEPS = 600
-VECTOR_ENVS = 4
 
 
 def _random_run(env: gym.Env, steps: int, seed: int) -> tuple[np.ndarray, np.ndarray, float]:
@@ -178,37 +180,106 @@ def check_suture_throw_scripted_thread() -> CheckResult:
                        _scripted_settings(env_id, rate, speed), run)
 
 
-@benchmark("vector_env")
-def bench_vector_env() -> dict:
-    """:class:`~suture_gym.envs.vector.SutureVectorEnv` of NeedleInsert with 4 envs, random actions."""
-    env = SutureVectorEnv("needle_insert", VECTOR_ENVS, max_episode_steps=300)
+def _vector_rate(num_envs: int, workers: int, steps: int) -> float:
+    """Env steps per second (all envs together) of a NeedleInsert :class:`SutureVectorEnv` of ``num_envs`` envs
+    on ``workers`` worker processes, over ``steps`` vector steps of seeded random actions after a warm-up."""
+    env = SutureVectorEnv("needle_insert", num_envs, max_episode_steps=300, workers=workers)
     env.action_space.seed(0)
     env.reset(seed=0)
     for _ in range(WARMUP_STEPS):
         env.step(env.action_space.sample())
-    timings: dict = {}
-    for single in env.envs:
-        single.sim.timings = timings
-    steps = TIMED_STEPS // VECTOR_ENVS
     start = time.perf_counter()
     for _ in range(steps):
         env.step(env.action_space.sample())
     elapsed = time.perf_counter() - start
-    sim = env.envs[0].sim
-    model = sim.model
     env.close()
-    solver_total = sum(timings.values())
-    substeps = steps * VECTOR_ENVS * sim.substeps
+    return num_envs * steps / elapsed
+
+
+@benchmark("vector_env")
+def bench_vector_env() -> dict:
+    """Env steps per second of :class:`~suture_gym.envs.vector.SutureVectorEnv` (NeedleInsert, random actions)
+    with 1 env in this process and with 2 and 4 envs on one worker process per env up to the cores this process
+    may use (:func:`~suture_gym.envs.vector.default_workers`), :data:`TIMED_STEPS` env steps each; and
+    ``scaling_1_to_2``, the 2-env rate over the 1-env rate (2 on two free cores, at best). Wall-clock rates:
+    other load on the machine (``load_average``, the 1-minute mean of runnable processes when it ended) lowers
+    them and the scaling."""
+    from suture_gym.envs.vector import default_workers
+
+    rates = {}
+    for n in (1, 2, 4):
+        workers = default_workers(n)
+        rates[n] = {"num_envs": n, "workers": workers,
+                    "env_steps_per_s": _vector_rate(n, workers, max(TIMED_STEPS // n, 1))}
+    cores = len(os.sched_getaffinity(0)) if hasattr(os, "sched_getaffinity") else os.cpu_count()
     return {
-        "tets": model.tissue.tet_count * VECTOR_ENVS,
-        "particles": model.tissue.particle_count * VECTOR_ENVS,
-        "strand_nodes": model.coupling.strand_node_count * VECTOR_ENVS,
-        "substep_ms": solver_total / substeps * 1e3,
-        "substeps_per_s": substeps / elapsed,
-        "collision_fraction": timings.get("detect", 0.0) / solver_total,
-        "solver_fraction": timings.get("project", 0.0) / solver_total,
-        "env_steps_per_s": VECTOR_ENVS * steps / elapsed,
-        "num_envs": VECTOR_ENVS,
+        "machine": f"{platform.processor() or platform.machine()}, {cores} cores, 1 thread per process",
         "env_id": "SutureGym/NeedleInsert-v1",
-        "workload": "seeded uniform random actions, NEXT_STEP autoreset, time limit 300; substep_ms is a mean",
+        "rates": list(rates.values()),
+        "scaling_1_to_2": rates[2]["env_steps_per_s"] / rates[1]["env_steps_per_s"],
+        "cores": cores,
+        "load_average": os.getloadavg()[0] if hasattr(os, "getloadavg") else None,
+        "workload": "seeded uniform random actions, NEXT_STEP autoreset, time limit 300; workers: processes",
+    }
+
+
+#: Run in a fresh interpreter by :func:`bench_cold_start`: imports suture_gym, then builds, resets and steps one
+#: env of each registered flat id, printing a JSON line of seconds since its start after the import and after
+#: each id's first step.
+_COLD_START_CHILD = """
+import time
+t0 = time.perf_counter()
+import json
+import gymnasium as gym
+import suture_gym
+from suture_gym.envs import ENV_IDS
+print(json.dumps({"event": "import", "t": time.perf_counter() - t0}), flush=True)
+for env_id in ENV_IDS:
+    env = gym.make(env_id)
+    env.reset(seed=0)
+    env.step(env.action_space.sample() * 0.0)
+    env.close()
+    print(json.dumps({"event": env_id, "t": time.perf_counter() - t0}), flush=True)
+"""
+
+
+def _cold_start_run(cache_dir: str) -> dict:
+    """Seconds after the import and after each id's first step of one :data:`_COLD_START_CHILD` run with the
+    numba cache ``cache_dir``."""
+    import json
+    import subprocess
+    import sys
+    from pathlib import Path
+
+    root = str(Path(suture_gym.envs.__file__).resolve().parents[2])
+    env = {**os.environ, "NUMBA_CACHE_DIR": cache_dir, "NUMBA_NUM_THREADS": "1",
+           "PYTHONPATH": os.pathsep.join(p for p in (root, os.environ.get("PYTHONPATH")) if p)}
+    done = subprocess.run([sys.executable, "-c", _COLD_START_CHILD], env=env, capture_output=True, text=True,
+                          check=True, timeout=3600)
+    return {e["event"]: e["t"] for e in map(json.loads, done.stdout.splitlines())}
+
+
+@benchmark("cold_start")
+def bench_cold_start() -> dict:
+    """Seconds from an empty numba cache to the first step of each task: a fresh interpreter with a new, empty
+    ``NUMBA_CACHE_DIR`` imports suture_gym, then builds, resets and steps one env of each flat id in registration
+    order (``first_step_s``: seconds since its start, so each id's figure includes the ids before it;
+    ``added_s``: what each id added). Then a second interpreter on the now filled cache (``warm_first_step_s``):
+    what every later start costs. One thread; compilation is CPU-bound, so other load on the machine
+    (``load_average``) lengthens it."""
+    import tempfile
+
+    with tempfile.TemporaryDirectory(prefix="suture_gym_cold_") as cache:
+        cold = _cold_start_run(cache)
+        warm = _cold_start_run(cache)
+    ids = [k for k in cold if k != "import"]
+    added = {env_id: cold[env_id] - (cold[ids[k - 1]] if k else cold["import"]) for k, env_id in enumerate(ids)}
+    return {
+        "import_s": cold["import"],
+        "first_step_s": {env_id: cold[env_id] for env_id in ids},
+        "added_s": added,
+        "total_s": cold[ids[-1]],
+        "warm_first_step_s": {env_id: warm[env_id] for env_id in ids},
+        "load_average": os.getloadavg()[0] if hasattr(os, "getloadavg") else None,
+        "workload": "fresh interpreter, empty NUMBA_CACHE_DIR, gym.make + reset + one zero action per flat id",
     }

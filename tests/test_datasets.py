@@ -1,0 +1,91 @@
+"""Expert demonstrations as Minari datasets: written, read back by Minari and bit for bit equal to the ``.npz``
+recording of the same episodes, cloned by behaviour cloning (directly and through ``train``), and named when
+missing. Tiny: two expert episodes of 25 steps, in a temporary datasets folder."""
+
+import json
+
+import numpy as np
+import pytest
+
+pytest.importorskip("minari")
+pytest.importorskip("stable_baselines3")
+
+from agents.expert import record, record_minari  # noqa: E402
+from agents.imitation import behaviour_clone, load_demos, load_minari_demos  # noqa: E402
+
+ENV = "SutureGym/NeedleInsert-v1"
+DATASET = "suture_gym/NeedleInsert-v1/expert-v0"
+SHORT = {"max_episode_steps": 25}
+
+
+@pytest.fixture(scope="module")
+def root(tmp_path_factory):
+    folder = tmp_path_factory.mktemp("minari")
+    summary = record_minari(ENV, 2, root=folder, seed=3, env_kwargs=SHORT, progress=False, author="test")
+    assert summary == {"episodes": 2, "steps": 50, "success_rate": 0.0, "dataset_id": DATASET, "root": str(folder)}
+    return folder
+
+
+def test_the_dataset_is_a_minari_dataset_of_the_expert_episodes(root, tmp_path, monkeypatch):
+    import minari
+
+    monkeypatch.setenv("MINARI_DATASETS_PATH", str(root))
+    dataset = minari.load_dataset(DATASET)
+    assert (dataset.total_episodes, dataset.total_steps) == (2, 50)
+    assert dataset.env_spec.id == ENV and dataset.env_spec.max_episode_steps == 25
+    episode = next(dataset.iterate_episodes())
+    assert episode.observations.shape == (26, *dataset.observation_space.shape)  # the reset's, then each step's
+    assert set(episode.infos) == {"tip_force", "cost", "is_success"} and episode.infos["tip_force"].shape == (26,)
+
+    demos = load_minari_demos(DATASET, root=root)
+    record(ENV, 2, tmp_path / "demos.npz", seed=3, env_kwargs=SHORT, progress=False)
+    npz = load_demos(tmp_path / "demos.npz")
+    assert set(demos) == set(npz) - {"episode_seeds", "env_id"}
+    for key, value in demos.items():
+        assert value.dtype == npz[key].dtype and np.array_equal(value, npz[key]), key
+    assert demos["episode_starts"].tolist() == [0, 25] and demos["truncated"].sum() == 2
+
+    with pytest.raises(ValueError, match="already exists"):
+        record_minari(ENV, 1, root=root, env_kwargs=SHORT, progress=False)
+
+
+def test_behaviour_cloning_fits_the_dataset(root):
+    from stable_baselines3 import PPO
+
+    from suture_gym.envs.sb3 import make_sb3_vec_env
+
+    demos = load_minari_demos(DATASET, root=root)
+    env = make_sb3_vec_env(ENV, 1, max_episode_steps=25)
+    model = PPO("MlpPolicy", env, n_steps=16, batch_size=16, seed=0, device="cpu",
+                policy_kwargs={"net_arch": [32, 32]})
+
+    def mse() -> float:
+        actions, _ = model.predict(demos["observations"], deterministic=True)
+        return float(np.mean((actions - demos["actions"]) ** 2))
+
+    before = mse()
+    fit = behaviour_clone(model, demos, epochs=100, batch_size=25, learning_rate=3e-3, seed=0)
+    assert fit["steps"] == 50 and fit["episodes"] == 2
+    assert mse() < 0.1 * before
+    env.close()
+
+
+def test_training_clones_a_dataset_by_id(root, tmp_path, monkeypatch):
+    from agents.training import train
+
+    monkeypatch.setenv("MINARI_DATASETS_PATH", str(root))
+    hyperparams = {"policy": "MlpPolicy", "n_timesteps": 16, "n_steps": 16, "batch_size": 16, "n_epochs": 1,
+                   "env_kwargs": SHORT, "behaviour_cloning": {"dataset": DATASET, "epochs": 2}}
+    result = train("ppo", ENV, out_dir=tmp_path, eval_freq=0, checkpoint_freq=0, progress_bar=False,
+                   hyperparams=hyperparams)
+    cloning = json.loads((result.run_dir / "summary.json").read_text())["behaviour_cloning"]
+    assert cloning["dataset"] == DATASET and cloning["steps"] == 50 and cloning["expert_success_rate"] == 0.0
+    assert not (result.run_dir / "demos.npz").exists()  # nothing recorded
+    with pytest.raises(ValueError, match=r"recorded on 'SutureGym/NeedleInsert-v1', not on 'SutureGym/SutureThrow"):
+        train("ppo", "SutureGym/SutureThrow-v2", out_dir=tmp_path, eval_freq=0, checkpoint_freq=0,
+              progress_bar=False, hyperparams=hyperparams)
+
+
+def test_a_missing_dataset_is_named_with_the_folder_and_what_it_holds(root):
+    with pytest.raises(FileNotFoundError, match=rf"'suture_gym/Nope-v1/expert-v0' in '{root}'.*{DATASET}"):
+        load_minari_demos("suture_gym/Nope-v1/expert-v0", root=root)
