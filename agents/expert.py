@@ -201,7 +201,7 @@ def _stack(observations: list):
 def main(argv: list[str] | None = None) -> int:
     parser = argparse.ArgumentParser(description="Record scripted-expert demonstrations to an .npz file or as a "
                                                  "Minari dataset.")
-    parser.add_argument("--env", required=True, help="env id, e.g. SutureGym/NeedleInsert-v1")
+    parser.add_argument("--env", required=True, help="env id, e.g. SutureGym/NeedleInsert-v2")
     parser.add_argument("--episodes", type=int, default=10)
     parser.add_argument("--seed", type=int, default=0, help="env seed of the first episode")
     where = parser.add_mutually_exclusive_group(required=True)

@@ -2,8 +2,8 @@
 
 Usage::
 
-    python scripts/evaluate.py --env SutureGym/NeedleInsert-v1 --policy random --episodes 20 --json
-    python scripts/evaluate.py --env SutureGym/NeedleInsert-v1 --policy runs/ppo_NeedleInsert_s0/best_model.zip
+    python scripts/evaluate.py --env SutureGym/NeedleInsert-v2 --policy random --episodes 20 --json
+    python scripts/evaluate.py --env SutureGym/NeedleInsert-v2 --policy runs/ppo_NeedleInsert_s0/best_model.zip
     python scripts/evaluate.py --policy elsewhere/model.zip --vecnormalize elsewhere/vecnormalize.pkl
 
 A saved model is evaluated with the VecNormalize statistics saved beside it (``final_vecnormalize.pkl``, or a
@@ -29,7 +29,7 @@ from agents.evaluation import evaluate  # noqa: E402
 
 def main(argv: list[str] | None = None) -> int:
     parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
-    parser.add_argument("--env", default="SutureGym/NeedleInsert-v1", help="Gymnasium env id")
+    parser.add_argument("--env", default="SutureGym/NeedleInsert-v2", help="Gymnasium env id")
     parser.add_argument("--policy", default="random", help="'random', 'expert' or a path to a model .zip")
     parser.add_argument("--episodes", type=int, default=20)
     parser.add_argument("--seed", type=int, default=0, help="episode k uses env seed seed + k")

@@ -2,7 +2,7 @@
 
 Steps:
 
-1. train PPO (``configs/agents/ppo.yml``) on ``SutureGym/NeedleInsert-v1`` with its randomised config for
+1. train PPO (``configs/agents/ppo.yml``) on ``SutureGym/NeedleInsert-v2`` (randomised by default) for
    ``--n-timesteps`` env steps with a progress bar, evaluating every ``--eval-freq`` steps
    (``agents.training.train``; run directory ``<out>/ppo_NeedleInsert_s<seed>/``). The config warm-starts the
    policy by behaviour cloning 80 scripted-expert episodes (recorded first, about three minutes);
@@ -40,7 +40,7 @@ from agents.evaluation import evaluate, make_policy, trained_env_kwargs  # noqa:
 from agents.training import train  # noqa: E402
 from suture_gym.render import write_video  # noqa: E402
 
-ENV_ID = "SutureGym/NeedleInsert-v1"
+ENV_ID = "SutureGym/NeedleInsert-v2"
 ALGO = "ppo"
 #: Env steps per video frame (the default 5 ms env step gives 25 fps at real time).
 VIDEO_EVERY = 8

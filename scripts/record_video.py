@@ -5,7 +5,7 @@ turned about its own centre along the planned arcs, then pulled to draw the thre
 Usage::
 
     python scripts/record_video.py                      # all tasks -> docs/media/<task>.mp4
-    python scripts/record_video.py --env SutureGym/NeedleInsert-v1 --out /tmp/videos --seconds 3
+    python scripts/record_video.py --env SutureGym/NeedleInsert-v2 --out /tmp/videos --seconds 3
 
 Prints one JSON line per video: path, frames, simulated seconds, size in bytes, success and the episode's
 return. Frames are taken every ``--every`` env steps; the video plays at real time (fps = 1 / (every * env

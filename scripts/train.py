@@ -2,9 +2,9 @@
 
 Usage::
 
-    python scripts/train.py --algo ppo --env SutureGym/NeedleInsert-v1 --seed 0
-    python scripts/train.py --algo sac --env SutureGym/NeedleInsert-v1 --n-timesteps 20000
-    python scripts/train.py --algo ppo --env SutureGym/NeedleInsert-v1 \
+    python scripts/train.py --algo ppo --env SutureGym/NeedleInsert-v2 --seed 0
+    python scripts/train.py --algo sac --env SutureGym/NeedleInsert-v2 --n-timesteps 20000
+    python scripts/train.py --algo ppo --env SutureGym/NeedleInsert-v2 \
         --resume runs/ppo_NeedleInsert_s0/checkpoints/model_50000_steps.zip
 
 Writes runs/<algo>_<Task>_s<seed>/ (config.yaml, TensorBoard logs, checkpoints, evaluations, best and final
@@ -28,7 +28,7 @@ from agents.training import train  # noqa: E402
 def main(argv: list[str] | None = None) -> int:
     parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     parser.add_argument("--algo", default="ppo", choices=algorithms(), help="algorithm (a configs/agents/*.yml)")
-    parser.add_argument("--env", default="SutureGym/NeedleInsert-v1", help="Gymnasium env id")
+    parser.add_argument("--env", default="SutureGym/NeedleInsert-v2", help="Gymnasium env id")
     parser.add_argument("--seed", type=int, default=0)
     parser.add_argument("--n-timesteps", type=int, default=None, help="override the config's total env steps")
     parser.add_argument("--out", default="runs", help="parent directory of the run directory")

@@ -4,7 +4,6 @@ scripted expert solves every task; expert demonstrations round-trip through ``.n
 from __future__ import annotations
 
 import math
-from pathlib import Path
 
 import gymnasium as gym
 import numpy as np
@@ -20,14 +19,12 @@ from agents.hyperparams import load_hyperparams  # noqa: E402
 from agents.training import train  # noqa: E402
 from suture_gym.tasks.surgeon import WORKSPACE_INSET  # noqa: E402
 
-#: NeedleInsert with seeded tissue, puncture and start-pose randomisation (the default config is nominal).
-RANDOMIZED = Path(__file__).resolve().parents[1] / "configs" / "envs" / "needle_insert_randomized.yaml"
 #: (algo, env id, env steps): the shipped configs with the budget, batch, warm-up and time limit shortened
 #: (HER samples only finished episodes, so episodes end before learning starts).
 SMOKE = (
-    ("ppo", "SutureGym/NeedleInsert-v1", 128),
-    ("sac", "SutureGym/NeedleInsert-v1", 150),
-    ("tqc", "SutureGym/NeedleInsertGoal-v1", 150),
+    ("ppo", "SutureGym/NeedleInsert-v2", 128),
+    ("sac", "SutureGym/NeedleInsert-v2", 150),
+    ("tqc", "SutureGym/NeedleInsertGoal-v2", 150),
 )
 
 
@@ -54,7 +51,7 @@ def test_config_trains_saves_loads_and_evaluates(tmp_path, algo, env_id, steps):
 
 def test_goal_configs_use_her_with_info_dicts():
     for algo in ("sac", "tqc"):
-        for env_id in ("SutureGym/NeedleInsertGoal-v1", "SutureGym/SutureThrowGoal-v2",
+        for env_id in ("SutureGym/NeedleInsertGoal-v2", "SutureGym/SutureThrowGoal-v2",
                        "SutureGym/WoundClosureGoal-v2"):
             hyperparams = load_hyperparams(algo, env_id)
             assert hyperparams["replay_buffer_class"] == "HerReplayBuffer"
@@ -64,14 +61,13 @@ def test_goal_configs_use_her_with_info_dicts():
 
 @pytest.mark.parametrize("seed", [0, 1, 2])
 def test_expert_inserts_needle_under_randomisation(seed):
-    summary = evaluate("SutureGym/NeedleInsert-v1", "expert", episodes=1, seed=seed,
-                       env_kwargs={"config": str(RANDOMIZED)})
+    summary = evaluate("SutureGym/NeedleInsert-v2", "expert", episodes=1, seed=seed)  # randomised by default
     assert summary["success_rate"] == 1.0
     assert summary["diverged_episodes"] == 0
 
 
 def test_expert_inserts_needle_in_pose_delta_mode():
-    summary = evaluate("SutureGym/NeedleInsert-v1", "expert", episodes=1, seed=0,
+    summary = evaluate("SutureGym/NeedleInsert-v2", "expert", episodes=1, seed=0,
                        env_kwargs={"action_mode": "pose_delta"})
     assert summary["success_rate"] == 1.0
 
@@ -89,7 +85,7 @@ def test_expert_closes_wound():
     assert summary["diverged_episodes"] == 0
 
 
-@pytest.mark.parametrize("env_id", ["SutureGym/NeedleInsert-v1", "SutureGym/WoundClosure-v2"])
+@pytest.mark.parametrize("env_id", ["SutureGym/NeedleInsert-v2", "SutureGym/WoundClosure-v2"])
 def test_expert_speeds_default_per_task_and_reject_bad_values(env_id):
     env = gym.make(env_id)
     task = env.unwrapped.task
@@ -143,7 +139,7 @@ def test_expert_leans_the_running_sutures_last_pull_ahead_along_the_suture():
 
 
 def test_tip_position_matches_observation():
-    env = gym.make("SutureGym/NeedleInsert-v1")
+    env = gym.make("SutureGym/NeedleInsert-v2")
     env.reset(seed=0)
     for _ in range(5):
         env.step(env.action_space.sample())
@@ -158,7 +154,7 @@ def test_expert_rejects_foreign_env():
 
 def test_demonstrations_round_trip(tmp_path):
     out = tmp_path / "demos.npz"
-    summary = record("SutureGym/NeedleInsert-v1", 2, out, seed=3, progress=False)
+    summary = record("SutureGym/NeedleInsert-v2", 2, out, seed=3, progress=False)
     data = np.load(out)
     lengths = data["episode_lengths"]
     assert summary["steps"] == int(lengths.sum()) == data["actions"].shape[0]
@@ -171,7 +167,7 @@ def test_demonstrations_round_trip(tmp_path):
     assert bool(np.all(done[ends])) and int(done.sum()) == 2
     assert np.array_equal(data["observations"][1:lengths[0]], data["next_observations"][:lengths[0] - 1])
     assert float(np.abs(data["actions"]).max()) <= 1.0
-    env = gym.make("SutureGym/NeedleInsert-v1")
+    env = gym.make("SutureGym/NeedleInsert-v2")
     expert = ExpertPolicy(env)
     obs, _ = env.reset(seed=3)
     replayed = 0.0

@@ -13,8 +13,8 @@ pytest.importorskip("stable_baselines3")
 from agents.expert import record, record_minari  # noqa: E402
 from agents.imitation import behaviour_clone, load_demos, load_minari_demos  # noqa: E402
 
-ENV = "SutureGym/NeedleInsert-v1"
-DATASET = "suture_gym/NeedleInsert-v1/expert-v0"
+ENV = "SutureGym/NeedleInsert-v2"
+DATASET = "suture_gym/NeedleInsert-v2/expert-v0"
 SHORT = {"max_episode_steps": 25}
 
 
@@ -81,7 +81,7 @@ def test_training_clones_a_dataset_by_id(root, tmp_path, monkeypatch):
     cloning = json.loads((result.run_dir / "summary.json").read_text())["behaviour_cloning"]
     assert cloning["dataset"] == DATASET and cloning["steps"] == 50 and cloning["expert_success_rate"] == 0.0
     assert not (result.run_dir / "demos.npz").exists()  # nothing recorded
-    with pytest.raises(ValueError, match=r"recorded on 'SutureGym/NeedleInsert-v1', not on 'SutureGym/SutureThrow"):
+    with pytest.raises(ValueError, match=r"recorded on 'SutureGym/NeedleInsert-v2', not on 'SutureGym/SutureThrow"):
         train("ppo", "SutureGym/SutureThrow-v2", out_dir=tmp_path, eval_freq=0, checkpoint_freq=0,
               progress_bar=False, hyperparams=hyperparams)
 

@@ -84,6 +84,56 @@ def test_random_rollouts_with_box_corners_stay_finite(env_id):
     assert episodes >= 1
 
 
+def _flat(obs) -> np.ndarray:
+    return obs["observation"] if isinstance(obs, dict) else obs
+
+
+@pytest.mark.parametrize("env_id", ALL_IDS)
+def test_every_id_randomises_by_default_and_a_seed_repeats_its_episode(env_id):
+    env = _env(env_id)
+    a, info_a = env.reset(seed=11)
+    b, info_b = env.reset(seed=12)
+    again, info_again = env.reset(seed=11)
+    assert not np.array_equal(_flat(a), _flat(b)) and info_a["params"] != info_b["params"]
+    np.testing.assert_array_equal(_flat(a), _flat(again))
+    assert info_a["params"] == info_again["params"]
+    assert env.observation_space.contains(a)
+
+
+@pytest.mark.parametrize("task", ["needle_insert", "suture_throw"])
+def test_the_observation_space_does_not_depend_on_the_randomisation(task):
+    spaces = [SutureEnv(task, config=cfg).observation_space for cfg in (
+        None, {"randomization": {"enabled": False}},
+        {"randomization": {"youngs_modulus_scale": [1.0, 1.0], "needle_position_noise": 0.0}},
+    )]
+    assert spaces[0] == spaces[1] == spaces[2]
+    assert np.all(np.isfinite(spaces[0].low)) and np.all(np.isfinite(spaces[0].high))
+    nominal = SutureEnv(task, config={"randomization": {"enabled": False}})
+    first, info = nominal.reset(seed=1)
+    second, info2 = nominal.reset(seed=2)
+    np.testing.assert_array_equal(first, second)
+    assert info["params"] == info2["params"]
+
+
+def test_scaled_observation_is_the_raw_one_over_its_scale_within_its_bounds():
+    scaled_env = SutureEnv("needle_insert")
+    raw_env = SutureEnv("needle_insert", config={"observation": {"scaled": False}})
+    assert np.all(np.isinf(raw_env.observation_space.high)) and raw_env.observation_space.shape == (
+        scaled_env.observation_space.shape)
+    scaled, _ = scaled_env.reset(seed=5)
+    raw, _ = raw_env.reset(seed=5)
+    actions = np.random.default_rng(0).uniform(-1.0, 1.0, (30, 6)).astype(np.float32)
+    for action in actions:
+        scaled, *_ = scaled_env.step(action)
+        raw, *_ = raw_env.step(action)
+    expected = np.clip(raw.astype(np.float64) / scaled_env.obs_scale, -scaled_env.obs_bound, scaled_env.obs_bound)
+    np.testing.assert_allclose(scaled, expected, rtol=1e-5, atol=1e-6)
+    index = scaled_env.obs_index
+    assert scaled_env.obs_scale[index["tip_force"]][0] == scaled_env.config.action.max_force
+    assert scaled_env.obs_scale[index["tip_pos"]][0] == 0.01
+    assert np.abs(scaled).max() <= scaled_env.obs_bound.max()
+
+
 @pytest.mark.parametrize("env_id", list(ENV_IDS))
 def test_same_seed_same_actions_bit_identical(env_id):
     rng = np.random.default_rng(4)
@@ -103,7 +153,7 @@ def test_same_seed_same_actions_bit_identical(env_id):
 
 
 def test_observations_do_not_alias_internal_arrays():
-    env = _env("SutureGym/NeedleInsert-v1")
+    env = _env("SutureGym/NeedleInsert-v2")
     obs, _ = env.reset(seed=0)
     kept = obs.copy()
     obs[:] = 123.0
@@ -140,7 +190,7 @@ def test_snapshot_restore_replays_identically(env_id):
 
 
 def test_non_finite_and_misshapen_actions_raise():
-    env = _env("SutureGym/NeedleInsert-v1")
+    env = _env("SutureGym/NeedleInsert-v2")
     env.reset(seed=0)
     with pytest.raises(ValueError, match=r"finite.*\[2\]"):
         env.step(np.array([0.0, 0.0, np.nan, 0.0, 0.0, 0.0]))
@@ -178,7 +228,7 @@ def test_actions_outside_the_box_act_as_the_box_edge(action_mode):
     ids=["str-list", "str-array", "complex", "object", "bool"],
 )
 def test_actions_that_are_not_real_numbers_raise_naming_the_dtype(action):
-    env = _env("SutureGym/NeedleInsert-v1")
+    env = _env("SutureGym/NeedleInsert-v2")
     env.reset(seed=0)
     with pytest.raises(TypeError, match=f"dtype {np.asarray(action).dtype}"):
         env.step(action)
@@ -217,7 +267,7 @@ def _diverge(env):
     env.sim.state.tissue.particle_qd[:] = np.nan
 
 
-@pytest.mark.parametrize("env_id", ["SutureGym/NeedleInsert-v1", "SutureGym/NeedleInsertGoal-v1"])
+@pytest.mark.parametrize("env_id", ["SutureGym/NeedleInsert-v2", "SutureGym/NeedleInsertGoal-v2"])
 def test_divergence_is_a_failure_with_the_last_finite_observation(env_id):
     env = _env(env_id)
     env.reset(seed=0, options={"phase": "inserted"})
@@ -243,7 +293,7 @@ def test_divergence_is_a_failure_with_the_last_finite_observation(env_id):
 
 
 def test_a_non_finite_observation_is_a_divergence_and_leaves_the_task_as_it_was(monkeypatch):
-    env = _env("SutureGym/NeedleInsert-v1")
+    env = _env("SutureGym/NeedleInsert-v2")
     obs0, _ = env.reset(seed=0)
     before = env.task.get_state()
     observables = env.sim.observables
@@ -255,7 +305,7 @@ def test_a_non_finite_observation_is_a_divergence_and_leaves_the_task_as_it_was(
 
 
 def test_reset_options_are_checked():
-    env = _env("SutureGym/NeedleInsert-v1")
+    env = _env("SutureGym/NeedleInsert-v2")
     with pytest.raises(ValueError, match="unknown reset option"):
         env.reset(seed=0, options={"difficulty": 2})
     with pytest.raises(ValueError, match="phase"):
@@ -290,7 +340,7 @@ def test_start_phases(task, config, phase, check):
 
 
 def test_scripted_surgeon_completes_needle_insert():
-    env = _env("SutureGym/NeedleInsert-v1")
+    env = _env("SutureGym/NeedleInsert-v2")
     env.reset(seed=0)
     arc = env.sim.arcs[0]
     angle = arc.entry_angle - env.config.plan.start_angle
@@ -314,7 +364,9 @@ def test_privileged_observation_holds_the_sampled_parameters():
     p = info["params"]
     expected = [p["youngs_modulus"], p["puncture_force"], p["gap"], *p["needle_position_offset"],
                 *p["needle_rotation_offset"]]
-    np.testing.assert_array_equal(params, np.array(expected, dtype=np.float32))
+    nominal = env.config
+    scale = [nominal.tissue.youngs_modulus, nominal.coupling.puncture_force, nominal.scene.gap, *[0.01] * 3, *[1.0] * 3]
+    np.testing.assert_allclose(params, np.array(expected) / scale, rtol=1e-6)
     _, info2 = env.reset(seed=3)
     assert info2["params"] != info["params"]
 
@@ -357,9 +409,9 @@ def test_goal_env_reward_is_compute_reward(env_id):
 def test_a_miss_ends_flat_episodes_only():
     """Relabelled goals of the goal-conditioned variant may still be reachable after a miss, so only the flat
     ids end on it (``termination.end_on_miss``)."""
-    flat = gym.make("SutureGym/NeedleInsert-v1").unwrapped
-    goal = gym.make("SutureGym/NeedleInsertGoal-v1").unwrapped
-    off = gym.make("SutureGym/NeedleInsert-v1", config={"termination": {"end_on_miss": False}}).unwrapped
+    flat = gym.make("SutureGym/NeedleInsert-v2").unwrapped
+    goal = gym.make("SutureGym/NeedleInsertGoal-v2").unwrapped
+    off = gym.make("SutureGym/NeedleInsert-v2", config={"termination": {"end_on_miss": False}}).unwrapped
     for env in (flat, goal, off):
         env.reset(seed=0)
     assert flat.task.end_on_miss and not goal.task.end_on_miss and not off.task.end_on_miss
@@ -369,7 +421,7 @@ def test_render_rgb_array_and_record_video(tmp_path):
     pytest.importorskip("moviepy")
     from gymnasium.wrappers import RecordVideo
 
-    env = gym.make("SutureGym/NeedleInsert-v1", render_mode="rgb_array")
+    env = gym.make("SutureGym/NeedleInsert-v2", render_mode="rgb_array")
     env = RecordVideo(env, str(tmp_path / "videos"), episode_trigger=lambda k: True, disable_logger=True)
     env.reset(seed=0)
     frame = env.unwrapped.render()
@@ -383,10 +435,10 @@ def test_render_rgb_array_and_record_video(tmp_path):
 
 
 def test_yaml_config_reaches_the_env():
-    env = gym.make("SutureGym/NeedleInsert-v1", config=CONFIGS / "needle_insert_randomized.yaml").unwrapped
-    assert env.config.observation.privileged and env.config.randomization.youngs_modulus_scale != (1.0, 1.0)
+    env = gym.make("SutureGym/NeedleInsert-v2", config=CONFIGS / "needle_insert_deterministic.yaml").unwrapped
+    assert not env.config.randomization.enabled and env.config.randomization.youngs_modulus_scale != (1.0, 1.0)
     with pytest.raises(ValueError, match="'reward.bonus'"):
-        gym.make("SutureGym/NeedleInsert-v1", config={"reward": {"bonus": 1.0}})
+        gym.make("SutureGym/NeedleInsert-v2", config={"reward": {"bonus": 1.0}})
 
 
 def test_record_video_script_films_the_expert(tmp_path):
@@ -396,7 +448,7 @@ def test_record_video_script_films_the_expert(tmp_path):
     import sys
 
     script = Path(__file__).resolve().parents[1] / "scripts" / "record_video.py"
-    done = subprocess.run([sys.executable, str(script), "--env", "SutureGym/NeedleInsert-v1", "--out", str(tmp_path),
+    done = subprocess.run([sys.executable, str(script), "--env", "SutureGym/NeedleInsert-v2", "--out", str(tmp_path),
                            "--seconds", "0.1", "--every", "5"], capture_output=True, text=True, check=True, timeout=600)
     line = json.loads(done.stdout.strip().splitlines()[-1])
     video = tmp_path / "needle_insert.mp4"

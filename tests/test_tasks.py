@@ -534,12 +534,22 @@ def test_sampling_is_seeded_and_within_ranges():
         assert np.all(np.abs(p.needle_position_offset) <= 1e-3) and np.all(np.abs(p.needle_rotation_offset) <= 0.05)
 
 
-def test_disabled_randomisation_gives_the_nominal_values_exactly():
-    cfg = default_config("needle_insert")
-    p = sample_params(cfg, np.random.default_rng(0))
-    n = nominal_params(cfg)
-    assert p.physics_key() == n.physics_key()
+def test_disabled_randomisation_gives_the_nominal_values_exactly_and_draws_the_same_stream():
+    on = default_config("needle_insert")
+    off = apply_overrides(on, {"randomization": {"enabled": False}})
+    rng_on, rng_off = np.random.default_rng(0), np.random.default_rng(0)
+    p, q = sample_params(off, rng_off), sample_params(on, rng_on)
+    n = nominal_params(off)
+    assert p.physics_key() == n.physics_key() and q.physics_key() != n.physics_key()
     assert not p.needle_position_offset.any() and not p.needle_rotation_offset.any()
+    assert rng_on.random() == rng_off.random()  # the same draws were made
+
+
+def test_a_scene_without_a_wound_keeps_its_nominal_gap():
+    cfg = default_config("needle_insert")
+    assert cfg.scene.kind == "pad" and cfg.randomization.gap_scale != (1.0, 1.0)
+    rng = np.random.default_rng(3)
+    assert all(sample_params(cfg, rng).gap == cfg.scene.gap for _ in range(20))
 
 
 def test_param_overrides_are_checked():

@@ -9,8 +9,10 @@ through the virtual coupling. An action that is not real numbers (strings, compl
 TypeError naming its dtype, a non-finite one ValueError; finite actions outside the box are clipped to it (a
 component of 1e6 acts, and is penalised, as 1).
 
-Observation: float32 vector laid out in :mod:`suture_gym.envs.spaces` (one row per index, with units), or for
-the goal-conditioned variant a Dict with ``observation``, ``achieved_goal`` and ``desired_goal``.
+Observation: float32 vector laid out in :mod:`suture_gym.envs.spaces` (one row per index, with units), each
+entry its SI value divided by its field's scale and clipped to its finite bound (``observation.scaled: false``:
+raw SI values, infinite bounds), or for the goal-conditioned variant a Dict with ``observation``,
+``achieved_goal`` and ``desired_goal`` (the goals in SI units).
 
 Episode end: ``terminated`` on success, on a tear (coupling force above the tear force, unless
 ``termination.end_on_tear`` is off), when the tip leaves the workspace, (flat ids, unless
@@ -45,7 +47,7 @@ from suture_gym.envs.config import EnvConfig, apply_overrides, load_config
 from suture_gym.envs.randomization import EpisodeParams, nominal_params, sample_params
 from suture_gym.envs.registry import task_class
 from suture_gym.envs.simulation import Simulation, SimulationSnapshot
-from suture_gym.envs.spaces import SDIST_CLIP, ObsField, observation_layout, observation_size
+from suture_gym.envs.spaces import SDIST_CLIP, ObsField, observation_layout, observation_scale, observation_size
 from suture_gym.sim.quat import quat_conj, quat_from_rotation_vector, quat_mul, quat_normalize, quat_rotation_vector
 from suture_gym.tasks import Observables, Task, TaskState
 
@@ -116,8 +118,10 @@ class SutureEnv(gym.Env):
         self.layout: tuple[ObsField, ...] = observation_layout(cfg)
         self.obs_index: dict[str, slice] = {f.name: f.slice for f in self.layout}
         size = observation_size(self.layout)
+        self.obs_scale, self.obs_bound = observation_scale(self.layout)
         self.action_space = gym.spaces.Box(-1.0, 1.0, (6,), np.float32)
-        self.observation_space = gym.spaces.Box(-np.inf, np.inf, (size,), np.float32)
+        bound = self.obs_bound.astype(np.float32)
+        self.observation_space = gym.spaces.Box(-bound, bound, (size,), np.float32)
         self.metadata = {**self.metadata, "render_fps": max(1, int(round(1.0 / self.sim.control_dt)))}
         a = cfg.action
         self._wrench_scale = np.array([a.max_force] * 3 + [a.max_torque] * 3)
@@ -327,7 +331,7 @@ class SutureEnv(gym.Env):
         return outcome.reward
 
     def _vector(self, o: Observables) -> np.ndarray:
-        """The flat float32 observation of ``o`` (layout in :mod:`suture_gym.envs.spaces`)."""
+        """The flat float32 observation of ``o`` (layout, scales and bounds in :mod:`suture_gym.envs.spaces`)."""
         buf = self._obs_buffer
         ix = self.obs_index
         arc = self.task.arc
@@ -361,7 +365,7 @@ class SutureEnv(gym.Env):
             buf[ix["target_rotation"]] = quat_rotation_vector(quat_mul(self._target_quat, quat_conj(grip_quat)))
         if "params" in ix:
             buf[ix["params"]] = self.params.as_array()
-        return buf.astype(np.float32)
+        return np.clip(buf / self.obs_scale, -self.obs_bound, self.obs_bound).astype(np.float32)
 
     def _observation(self, o: Observables):
         return self._vector(o)
@@ -420,7 +424,7 @@ class SutureGoalEnv(SutureEnv):
         size = self.task_cls.GOAL_SIZE
         self.observation_space = gym.spaces.Dict(
             {
-                "observation": gym.spaces.Box(-np.inf, np.inf, (observation_size(self.layout),), np.float32),
+                "observation": self.observation_space,
                 "achieved_goal": gym.spaces.Box(-np.inf, np.inf, (size,), np.float32),
                 "desired_goal": gym.spaces.Box(-np.inf, np.inf, (size,), np.float32),
             }

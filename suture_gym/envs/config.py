@@ -335,20 +335,27 @@ class PlanConfig(_Section):
 class RandomizationConfig(_Section):
     """Seeded domain randomisation, sampled at every reset from the env's ``np_random`` in a fixed order.
 
-    Scale ranges ``(lo, hi)`` multiply the nominal value by a log-uniform factor (``(1, 1)`` disables one);
-    noises are half-widths of uniform offsets per axis (0 disables). The sampled values are in
-    ``info["params"]`` at reset and, with ``observation.privileged``, appended to the observation.
+    On by default (ids v2), like Gymnasium's ``reset_noise_scale``: every episode starts from a slightly
+    different pose on slightly different tissue, so seeded evaluations are not one episode repeated.
+    ``enabled: false`` gives the nominal episode at every reset (for debugging; the random stream is drawn
+    the same). Scale ranges ``(lo, hi)`` multiply the nominal value by a log-uniform factor (``(1, 1)``
+    disables one); noises are half-widths of uniform offsets per axis (0 disables). The sampled values are in
+    ``info["params"]`` at reset and, with ``observation.privileged``, appended to the observation (whose size
+    never depends on these settings).
     """
 
     SECTION: ClassVar[str] = "randomization"
 
-    youngs_modulus_scale: tuple[float, float] = (1.0, 1.0)  # factor on tissue.youngs_modulus
-    puncture_force_scale: tuple[float, float] = (1.0, 1.0)  # factor on coupling.puncture_force
-    gap_scale: tuple[float, float] = (1.0, 1.0)  # factor on scene.gap (wound scenes)
-    needle_position_noise: float = 0.0  # m, per axis, of the needle's start pose
-    needle_rotation_noise: float = 0.0  # rad, per rotation-vector component of the start orientation
+    enabled: bool = True  # false: every episode has the nominal parameters
+    youngs_modulus_scale: tuple[float, float] = (0.7, 1.3)  # factor on tissue.youngs_modulus
+    puncture_force_scale: tuple[float, float] = (0.8, 1.25)  # factor on coupling.puncture_force
+    gap_scale: tuple[float, float] = (0.9, 1.1)  # factor on scene.gap (wound scenes)
+    needle_position_noise: float = 0.0005  # m, per axis, of the needle's start pose
+    needle_rotation_noise: float = 0.05  # rad, per rotation-vector component of the start orientation
 
     def validate(self, path: str) -> None:
+        if not isinstance(self.enabled, bool):
+            _fail(f"{path}.enabled", f"must be true or false, got {self.enabled!r}")
         for name in ("youngs_modulus_scale", "puncture_force_scale", "gap_scale"):
             _range(f"{path}.{name}", getattr(self, name), low=0.0)
         _real(f"{path}.needle_position_noise", self.needle_position_noise, low=0.0)
@@ -411,17 +418,20 @@ class TerminationConfig(_Section):
 
 @dataclass(frozen=True)
 class ObservationConfig(_Section):
-    """What the observation vector holds beyond the fixed layout (see :mod:`suture_gym.envs.spaces`)."""
+    """What the observation vector holds beyond the fixed layout, and its units (see
+    :mod:`suture_gym.envs.spaces`)."""
 
     SECTION: ClassVar[str] = "observation"
 
     suture_samples: int = 0  # thread nodes sampled evenly from the swage to the tail (0: none)
     privileged: bool = False  # append the randomised parameters
+    scaled: bool = True  # each entry divided by its field's scale and clipped to its bound; false: raw SI values
 
     def validate(self, path: str) -> None:
         _count(f"{path}.suture_samples", self.suture_samples, 0)
-        if not isinstance(self.privileged, bool):
-            _fail(f"{path}.privileged", f"must be true or false, got {self.privileged!r}")
+        for name in ("privileged", "scaled"):
+            if not isinstance(getattr(self, name), bool):
+                _fail(f"{path}.{name}", f"must be true or false, got {getattr(self, name)!r}")
 
 
 @dataclass(frozen=True)

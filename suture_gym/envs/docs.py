@@ -48,14 +48,16 @@ def _observation_lines(task: type[Task], config, goal_conditioned: bool) -> list
 
     layout = observation_layout(config)
     size = observation_size(layout)
-    head = f"``Box(-inf, inf, ({size},), float32)`` with the default config (positions relative to the current "
-    head += "planned arc's centre; thread samples, ``pose_delta`` and ``observation.privileged`` add entries):"
-    lines = [head, "", "=====  ==============================  =======  ==========================================="]
-    lines.append("index  name                            unit     description")
-    lines.append(lines[2])
-    for index, name, unit, description in observation_table(layout):
-        lines.append(f"{index:<5d}  {name:<30s}  {unit:<7s}  {description}")
-    lines.append(lines[2])
+    head = f"``Box(-bound, bound, ({size},), float32)`` with the default config (positions relative to the current "
+    head += "planned arc's centre; thread samples, ``pose_delta`` and ``observation.privileged`` add entries, the "
+    head += "randomisation's settings none). Each entry is its raw value (in ``unit``) divided by ``scale`` and "
+    head += "clipped to ``[-bound, bound]``; ``observation.scaled: false`` gives the raw SI values (``Box(-inf, "
+    head += "inf)``):"
+    rule = "=====  ==============================  =======  ==========  ======  ==================================="
+    lines = [head, "", rule, "index  name                            unit     scale       bound   description", rule]
+    for index, name, unit, scale, bound, description in observation_table(layout):
+        lines.append(f"{index:<5d}  {name:<30s}  {unit:<7s}  {scale:<10.4g}  {bound:<6.4g}  {description}")
+    lines.append(rule)
     if goal_conditioned:
         goal = ", ".join(f"{name} ({unit})" for name, unit in task.GOAL_LAYOUT)
         lines += ["", f"Goal-conditioned: ``Dict(observation=<the above>, achieved_goal=Box({task.GOAL_SIZE}), "

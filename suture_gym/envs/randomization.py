@@ -107,7 +107,9 @@ def _log_uniform(rng: np.random.Generator, bounds: tuple[float, float]) -> float
 
 def sample_params(config: EnvConfig, rng: np.random.Generator) -> EpisodeParams:
     """Draw one episode's parameters from ``rng``, in the order: Young's modulus factor, puncture force factor,
-    gap factor, position offset (x, y, z), rotation offset (x, y, z)."""
+    gap factor, position offset (x, y, z), rotation offset (x, y, z); with ``randomization.enabled`` false the
+    draws are made all the same and the nominal parameters returned. A scene without a wound (``pad``) keeps
+    its nominal gap, which it does not use."""
     r = config.randomization
     nominal = nominal_params(config)
     e_scale = _log_uniform(rng, r.youngs_modulus_scale)
@@ -115,10 +117,12 @@ def sample_params(config: EnvConfig, rng: np.random.Generator) -> EpisodeParams:
     g_scale = _log_uniform(rng, r.gap_scale)
     position = rng.uniform(-r.needle_position_noise, r.needle_position_noise, size=3)
     rotation = rng.uniform(-r.needle_rotation_noise, r.needle_rotation_noise, size=3)
+    if not r.enabled:
+        return nominal
     return EpisodeParams(
         youngs_modulus=nominal.youngs_modulus * e_scale,
         puncture_force=nominal.puncture_force * f_scale,
-        gap=nominal.gap * g_scale,
+        gap=nominal.gap * (g_scale if config.scene.kind == "wound" else 1.0),
         needle_position_offset=position,
         needle_rotation_offset=rotation,
     )

@@ -158,7 +158,7 @@ def _scripted_settings(env_id: str, turn_rate: float, pull_speed: float | None) 
 def check_needle_insert_scripted_accuracy() -> CheckResult:
     """The scripted surgeon's bite in NeedleInsert: the larger of the entry and exit errors (material points
     against the planned markers) must be within the task's access tolerance, and the episode must succeed."""
-    env_id, rate = "SutureGym/NeedleInsert-v1", 2.0
+    env_id, rate = "SutureGym/NeedleInsert-v2", 2.0
     run = _scripted_episode(env_id, rate, None)
     tolerance = gym.make(env_id).unwrapped.config.reward.access_tolerance
     measured = max(run["entry_error_m"], run["exit_error_m"])
@@ -214,7 +214,7 @@ def bench_vector_env() -> dict:
     cores = len(os.sched_getaffinity(0)) if hasattr(os, "sched_getaffinity") else os.cpu_count()
     return {
         "machine": f"{platform.processor() or platform.machine()}, {cores} cores, 1 thread per process",
-        "env_id": "SutureGym/NeedleInsert-v1",
+        "env_id": "SutureGym/NeedleInsert-v2",
         "rates": list(rates.values()),
         "scaling_1_to_2": rates[2]["env_steps_per_s"] / rates[1]["env_steps_per_s"],
         "cores": cores,

@@ -1,6 +1,6 @@
 """Suturing tasks: small classes with named reward terms that read :class:`Observables` only.
 
-* :class:`NeedleInsert` (``SutureGym/NeedleInsert-v1``), :class:`SutureThrow` (``SutureGym/SutureThrow-v2``),
+* :class:`NeedleInsert` (``SutureGym/NeedleInsert-v2``), :class:`SutureThrow` (``SutureGym/SutureThrow-v2``),
   :class:`WoundClosure` (``SutureGym/WoundClosure-v2``), registered in :mod:`suture_gym.envs`
   (:func:`~suture_gym.envs.registry.register_task`).
 * A task is the unit of extension: its reward terms (``term_<name>`` methods), config defaults (``CONFIG``),

@@ -215,8 +215,13 @@ class StepContext:
     failed: bool
 
 
-#: The built-in tasks' version history (:attr:`Task.VERSION_HISTORY`): the physics they share.
+#: The built-in tasks' version history (:attr:`Task.VERSION_HISTORY`): what they share.
 BUILTIN_VERSION_HISTORY = (
+    "v2 (issue 15): randomised by default (tissue stiffness x0.7-1.3, puncture force x0.8-1.25, wound gap "
+    "x0.9-1.1, start pose +-0.5 mm and +-0.05 rad per axis; ``randomization.enabled: false`` for the nominal "
+    "episode), and the observation scaled to O(1) with finite bounds (lengths in cm, forces and torques in "
+    "units of the action's limits; ``observation.scaled: false`` for raw SI values). The observation's size "
+    "never depends on the randomisation.",
     "v1 (issues 13, 14): real-scale physics. Tissue 300 kPa (a silicone suture-training pad; was 3 kPa) on the "
     "implicit quasi-Newton integrator with two sweeps per substep (was XPBD, which at the env's time step gave "
     "the wrong Poisson's ratio and softness); every force x100: puncture 0.5 N, tear 10 N, actions up to 5 N "
@@ -226,13 +231,13 @@ BUILTIN_VERSION_HISTORY = (
     "after the env ended the episode raises.",
     "v0: 3 kPa XPBD tissue and millinewton forces (puncture 5 mN, actions up to 0.05 N and 2e-4 N m).",
 )
-#: The thread tasks' version history: :data:`BUILTIN_VERSION_HISTORY` and the thread's own changes since.
+#: The thread tasks' version history: :data:`BUILTIN_VERSION_HISTORY` with the thread's own changes added.
 THREAD_VERSION_HISTORY = (
-    "v2 (issue 14): the base under the wound is the thread's obstacle (with Coulomb friction 0.3), and the "
-    "bars' bottom faces, which rest on it, no longer give the thread contact rows. In v1 the slack of the "
-    "thread crossing the wound fell through the gap below the bars and hooked on their bottom edges, and "
-    "the scripted expert tore the tissue in some randomised SutureThrow episodes.",
-) + BUILTIN_VERSION_HISTORY
+    BUILTIN_VERSION_HISTORY[0] + " Also (issue 14): the base under the wound is the thread's obstacle (with "
+    "Coulomb friction 0.3), and the bars' bottom faces, which rest on it, no longer give the thread contact "
+    "rows. In v1 the slack of the thread crossing the wound fell through the gap below the bars and hooked on "
+    "their bottom edges, and the scripted expert tore the tissue in some randomised SutureThrow episodes.",
+) + BUILTIN_VERSION_HISTORY[1:]
 
 
 class Task(ABC):

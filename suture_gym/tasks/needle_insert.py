@@ -1,4 +1,4 @@
-"""``SutureGym/NeedleInsert-v1``: pierce at the marked entry, follow the planned arc, exit at the marked exit."""
+"""``SutureGym/NeedleInsert-v2``: pierce at the marked entry, follow the planned arc, exit at the marked exit."""
 
 from __future__ import annotations
 
@@ -21,8 +21,8 @@ class NeedleInsert(Task):
     """
 
     NAME = "needle_insert"
-    ENV_ID = "SutureGym/NeedleInsert-v1"
-    GOAL_ENV_ID = "SutureGym/NeedleInsertGoal-v1"
+    ENV_ID = "SutureGym/NeedleInsert-v2"
+    GOAL_ENV_ID = "SutureGym/NeedleInsertGoal-v2"
     MAX_EPISODE_STEPS = 600
     VERSION_HISTORY = BUILTIN_VERSION_HISTORY
     CONFIG = {}
