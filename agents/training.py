@@ -74,6 +74,21 @@ def make_vec_env(env_id: str, n_envs: int, seed: int, env_kwargs: dict | None = 
     return sb3_make_vec_env(env_id, n_envs=n_envs, seed=seed, env_kwargs=env_kwargs or {}, vec_env_cls=DummyVecEnv)
 
 
+def make_train_envs(env_id: str, n_envs: int, seed: int, env_kwargs: dict, normalize) -> tuple:
+    """``(training VecEnv, evaluation VecEnv)`` of ``env_id``: ``n_envs`` envs seeded from ``seed`` and one seeded
+    ``seed + 1000``, both in ``VecNormalize`` when ``normalize`` (True or its keyword arguments; the evaluation
+    copy neither updates the statistics nor normalises rewards)."""
+    from stable_baselines3.common.vec_env import VecNormalize
+
+    env = make_vec_env(env_id, n_envs, seed, env_kwargs)
+    eval_env = make_vec_env(env_id, 1, seed + 1000, env_kwargs)
+    if normalize:
+        norm_kwargs = normalize if isinstance(normalize, dict) else {}
+        env = VecNormalize(env, **norm_kwargs)
+        eval_env = VecNormalize(eval_env, **{**norm_kwargs, "training": False, "norm_reward": False})
+    return env, eval_env
+
+
 def train(
     algo: str,
     env_id: str,
@@ -121,13 +136,8 @@ def train(
     (run_dir / "checkpoints").mkdir(parents=True, exist_ok=True)
     _write_config(run_dir, algo, env_id, seed, total, raw, resume)
 
-    env = make_vec_env(env_id, n_envs, seed, env_kwargs)
-    eval_env = make_vec_env(env_id, 1, seed + 1000, env_kwargs)
     normalize = script.get("normalize", False)
-    if normalize:
-        norm_kwargs = normalize if isinstance(normalize, dict) else {}
-        env = VecNormalize(env, **norm_kwargs)
-        eval_env = VecNormalize(eval_env, **{**norm_kwargs, "training": False, "norm_reward": False})
+    env, eval_env = make_train_envs(env_id, n_envs, seed, env_kwargs, normalize)
 
     cls = algo_class(algo)
     if resume is not None:

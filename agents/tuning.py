@@ -125,23 +125,16 @@ def objective(trial, algo: str, env_id: str, base: dict[str, Any], overrides: di
     recording expert episodes for every trial)."""
     import optuna
     from stable_baselines3.common.callbacks import EvalCallback
-    from stable_baselines3.common.vec_env import VecNormalize
 
     from agents.hyperparams import resolve
-    from agents.training import _warm_start, algo_class, make_vec_env
+    from agents.training import _warm_start, algo_class, make_train_envs
 
     params = trial_hyperparams(algo, base, trial, overrides)
     trial.set_user_attr("hyperparams", params)
     script, kwargs = resolve(params)
     n_envs = int(script.get("n_envs", 1))
     env_kwargs = script.get("env_kwargs", {})
-    env = make_vec_env(env_id, n_envs, seed, env_kwargs)
-    eval_env = make_vec_env(env_id, 1, seed + 1000, env_kwargs)
-    normalize = script.get("normalize", False)
-    if normalize:
-        norm_kwargs = normalize if isinstance(normalize, dict) else {}
-        env = VecNormalize(env, **norm_kwargs)
-        eval_env = VecNormalize(eval_env, **{**norm_kwargs, "training": False, "norm_reward": False})
+    env, eval_env = make_train_envs(env_id, n_envs, seed, env_kwargs, script.get("normalize", False))
     model = algo_class(algo)(script["policy"], env, seed=seed, device="cpu", verbose=0, **kwargs)
     if "behaviour_cloning" in script:
         with tempfile.TemporaryDirectory() as run_dir:
