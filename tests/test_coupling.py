@@ -599,10 +599,30 @@ def test_a_contact_row_on_a_collapsed_neighbourhood_is_dropped():
     normals = np.zeros((2, 3))
     contact_frames(
         kind, np.zeros(2, np.int32), np.full((2, 3), 1.0 / 3.0), np.zeros(tv.shape[0], np.bool_), tv,
-        surface.vertex_tri_start, surface.vertex_tri_index, q, normals,
+        surface.vertex_tri_start, surface.vertex_tri_index, q, np.zeros((2, 3)), normals,
     )  # fmt: skip
     assert kind.tolist() == [ROW_NONE, ROW_PATH] and not normals.any()
 
+
+
+def test_a_node_past_the_edge_of_a_rigid_face_is_pushed_along_the_distance_gradient():
+    """A rigid (clamped) end face x = 0.01 ending at z = 0.008: a node beside it gets the face normal, a node
+    above its top edge the direction from the edge to it, not the face normal, which would hold the node to
+    the face's plane beyond the end of the face (a thread sliding over the edge snagged on it)."""
+    tv = np.array([[0, 1, 2]], np.int32)
+    q = np.array([[0.01, 0.0, 0.008], [0.01, 0.0, 0.0], [0.01, 0.01, 0.008]])  # normal +x (right-handed)
+    bary = np.array([[0.5, 0.0, 0.5], [0.25, 0.5, 0.25], [0.5, 0.0, 0.5], [0.5, 0.0, 0.5]])  # edge, inside
+    strand = np.array([[0.0103, 0.005, 0.009], [0.011, 0.0025, 0.004], [0.0098, 0.005, 0.0079], [0.0103, 0.005, 0.009]])
+    kind = np.array([ROW_TRIANGLE, ROW_TRIANGLE, ROW_TRIANGLE, ROW_WALL], np.int8)
+    normals = np.zeros((4, 3))
+    empty = np.zeros(0, np.int32)
+    contact_frames(kind, np.zeros(4, np.int32), bary, np.ones(1, np.bool_), tv, empty, empty, q, strand, normals)
+    edge_to_node = strand[0] - (0.5 * q[0] + 0.5 * q[2])
+    np.testing.assert_allclose(normals[0], edge_to_node / np.linalg.norm(edge_to_node))
+    assert normals[0][2] > 0.9  # mostly up: the node can slide over the edge
+    np.testing.assert_allclose(normals[1], [1.0, 0.0, 0.0])  # in front of the face: its normal
+    np.testing.assert_allclose(normals[2], [1.0, 0.0, 0.0])  # behind it (a crossing row): its normal
+    np.testing.assert_allclose(normals[3], [-1.0, 0.0, 0.0])  # a row from the inside: turned inward
 
 def _floor(start_height, depenetration, eps=3e-4):
     """contact_floors for one needle node (body origin) that starts ``start_height`` above a z = 0 triangle."""

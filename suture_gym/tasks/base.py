@@ -236,7 +236,9 @@ THREAD_VERSION_HISTORY = (
     BUILTIN_VERSION_HISTORY[0] + " Also (issue 14): the base under the wound is the thread's obstacle (with "
     "Coulomb friction 0.3), and the bars' bottom faces, which rest on it, no longer give the thread contact "
     "rows. In v1 the slack of the thread crossing the wound fell through the gap below the bars and hooked on "
-    "their bottom edges, and the scripted expert tore the tissue in some randomised SutureThrow episodes.",
+    "their bottom edges, and the scripted expert tore the tissue in some randomised SutureThrow episodes; and a "
+    "strand node past the edge of a rigid (clamped) face is pushed along the distance's gradient, not the face's "
+    "normal, which snagged the thread sliding over a bar's clamped end.",
 ) + BUILTIN_VERSION_HISTORY[1:]
 
 

@@ -189,12 +189,18 @@ def path_arrays(state: CouplingState) -> tuple:
 
 @njit(cache=True)
 def contact_frames(
-    row_kind, row_tri, row_bary, tri_rigid, tri_vertices, vertex_tri_start, vertex_tri_index, tissue_q, row_normal
-):
+    row_kind, row_tri, row_bary, tri_rigid, tri_vertices, vertex_tri_start, vertex_tri_index, tissue_q, strand_q,
+    row_normal,
+):  # fmt: skip
     """Unit contact normal of every contact row at detection, at its surface point (``row_tri``, ``row_bary``):
-    the face normal of a rigid triangle (``tri_rigid``), the smooth normal (:func:`surface_normal`) of a
-    deforming one; turned inward for the rows from the inside (ROW_WALL, ROW_EXIT). A row whose normal is
-    undefined (a collapsed neighbourhood) is dropped (ROW_NONE). Writes ``row_normal`` (M, 3); updates ``row_kind``."""
+    on a rigid triangle (``tri_rigid``) the face normal, or for a node outside it (ROW_TRIANGLE, ``strand_q``
+    (M, 3) m in front of the face's plane) the direction from the surface point to the node: the gradient of
+    the distance, which past a convex edge of a rigid body (a clamped end face meeting the top) tilts around
+    the edge instead of holding the node to the face's plane beyond its end; on a deforming one the smooth
+    normal (:func:`surface_normal`). Turned inward for the rows from the inside (ROW_WALL, ROW_EXIT). A row
+    whose normal is undefined (a collapsed neighbourhood) is dropped (ROW_NONE). Writes ``row_normal`` (M, 3);
+    updates ``row_kind``."""
+    d = np.empty(3)
     for i in range(row_kind.shape[0]):
         kind = row_kind[i]
         if kind != ROW_TRIANGLE and kind != ROW_WALL and kind != ROW_ANCHOR and kind != ROW_EXIT:
@@ -206,6 +212,14 @@ def contact_frames(
             length = math.sqrt(n @ n)
             if length > 0.0:
                 n /= length
+            if kind == ROW_TRIANGLE:
+                for k in range(3):
+                    d[k] = strand_q[i, k]
+                    for v in range(3):
+                        d[k] -= row_bary[i, v] * tissue_q[tri_vertices[tri, v], k]
+                distance = math.sqrt(d @ d)
+                if distance > 0.0 and d @ n > 0.0:
+                    n = d / distance
         else:
             n = surface_normal(tri, row_bary[i], tri_vertices, vertex_tri_start, vertex_tri_index, tissue_q)
         if not (n[0] != 0.0 or n[1] != 0.0 or n[2] != 0.0):
@@ -325,7 +339,7 @@ def coupling_detect(
         rigid_crossings(model, work, tissue_q, strand_q_start, strand_q)
     contact_frames(
         work.row_kind, work.row_tri, work.row_bary, model.tri_rigid, model.surface.tri_vertices,
-        model.surface.vertex_tri_start, model.surface.vertex_tri_index, tissue_q, work.row_contact_normal,
+        model.surface.vertex_tri_start, model.surface.vertex_tri_index, tissue_q, strand_q, work.row_contact_normal,
     )  # fmt: skip
     work.row_lambda[:] = 0.0
     work.row_friction_lambda[:] = 0.0
