@@ -1,0 +1,196 @@
+"""The live viewer (viser): ``render_mode="human"``, the viewer application, teleoperation and its recording as a
+Minari dataset. Skipped where viser (the ``viewer`` extra) is not installed; the recording test also needs Minari
+(the ``data`` extra)."""
+
+from __future__ import annotations
+
+import importlib.util
+import sys
+import time
+
+import gymnasium as gym
+import numpy as np
+import pytest
+
+from suture_gym.envs import ENV_IDS, GOAL_ENV_IDS
+from suture_gym.envs.config import load_config
+from suture_gym.viewer import require_viser
+
+NEEDLE = "SutureGym/NeedleInsert-v1"
+needs_viser = pytest.mark.skipif(importlib.util.find_spec("viser") is None,
+                                 reason="the live viewer needs viser: pip install 'suture_gym[viewer]'")
+
+
+def test_missing_viser_names_the_viewer_extra(monkeypatch):
+    monkeypatch.setitem(sys.modules, "viser", None)
+    with pytest.raises(ImportError, match=r"suture_gym\[viewer\]"):
+        require_viser()
+    with pytest.raises(ImportError, match=r"suture_gym\[viewer\]"):
+        gym.make(NEEDLE, render_mode="human")
+
+
+@pytest.mark.parametrize(("key", "value"), [("viewer_port", 70000), ("viewer_port", -1), ("viewer_fps", 0.0),
+                                            ("viewer_host", "")])
+def test_viewer_config_refuses_bad_values(key, value):
+    with pytest.raises(ValueError, match=f"render.{key}"):
+        load_config("needle_insert", {"render": {key: value}})
+
+
+def test_vector_env_refuses_human_render_mode():
+    from suture_gym.envs import make_vector_env
+
+    with pytest.raises(ValueError, match="render_mode='human'"):
+        make_vector_env(NEEDLE, 2, workers=0, render_mode="human")
+
+
+@needs_viser
+def test_human_render_mode_streams_vertex_updates(monkeypatch):
+    """``render_mode="human"`` serves the scene from the first reset; stepping updates the vertices of the meshes
+    made at the first frame instead of sending new ones."""
+    import viser
+
+    made = []
+    add_mesh = viser.SceneApi.add_mesh_simple
+
+    def counting_add_mesh(self, name, *args, **kwargs):
+        made.append(name)
+        return add_mesh(self, name, *args, **kwargs)
+
+    monkeypatch.setattr(viser.SceneApi, "add_mesh_simple", counting_add_mesh)
+    env = gym.make(NEEDLE, render_mode="human", config={"render": {"viewer_port": 0, "viewer_fps": 1000.0}})
+    env.reset(seed=0)
+    view = env.unwrapped._live
+    assert view is not None and view.port > 0
+    mesh = view.scene.nodes["tissue"]
+    push = np.zeros(6, dtype=np.float32)
+    push[2] = -1.0  # press the needle down into the tissue: the surface deforms
+    for _ in range(60):
+        _, _, terminated, _, info = env.step(push)
+        assert not terminated
+    assert env.render() is None
+    sim = env.unwrapped.sim
+    q = sim.state.tissue.particle_q
+    assert made == ["/tissue"]  # the mesh was made once ...
+    assert view.scene.nodes["tissue"] is mesh
+    np.testing.assert_allclose(mesh.vertices, q.astype(np.float32))  # ... and follows the tissue
+    assert np.max(np.abs(q - sim.model.tissue.particle_rest_q)) > 1e-5  # which moved
+    needle = env.unwrapped.view_frame().needle_q
+    np.testing.assert_allclose(view.scene.nodes["needle"].points[:, 0], needle[:-1], atol=1e-6)
+    assert view.pushes >= 2
+    assert f"{info['tip_force']:.3f} N" in view.panel.text["tip"]
+    env.close()
+    assert env.unwrapped._live is None
+
+
+@needs_viser
+@pytest.mark.parametrize("env_id", list(ENV_IDS) + list(GOAL_ENV_IDS))
+def test_every_id_has_the_human_render_mode(env_id):
+    env = gym.make(env_id, render_mode="human", config={"render": {"viewer_port": 0}})
+    env.reset(seed=1)
+    for _ in range(3):
+        env.step(env.action_space.sample())
+    nodes = env.unwrapped._live.scene.nodes
+    thread = env.unwrapped.sim.state.suture is not None
+    assert {"tissue", "needle", "markers", "planned_arcs", "reaction_force"} <= set(nodes)
+    assert ("suture" in nodes) == thread
+    env.close()
+
+
+def _app(**kwargs):
+    from suture_gym.viewer.app import ViewerApp
+
+    return ViewerApp(NEEDLE, port=0, speed=None, **kwargs)
+
+
+@needs_viser
+def test_viewer_plays_a_policy_and_pauses():
+    app = _app(policy="expert")
+    try:
+        summary = app.run(max_steps=25)
+        assert summary["steps"] == 25 and app.steps == 25
+        assert summary["frames"] >= 1
+        app.set_paused(True)
+        assert app.tick() is False and app.steps == 25  # paused: the loop does not step ...
+        app.step_once()
+        assert app.steps == 26  # ... but single steps do
+        app.reset(7)
+        assert (app.seed, app.steps) == (7, 0)
+        assert "paused" in app.view.panel.text["episode"] and "seed 7" in app.view.panel.text["episode"]
+    finally:
+        app.close()
+
+
+@needs_viser
+def test_viewer_cli_runs_headless(capsys):
+    from suture_gym.viewer.app import main
+
+    assert main(["--env", NEEDLE, "--policy", "random", "--port", "0", "--steps", "5", "--speed", "0"]) == 0
+    assert "5 env steps" in capsys.readouterr().err
+
+
+@needs_viser
+@pytest.mark.parametrize("action_mode", ["wrench", "pose_delta"])
+def test_teleoperated_episode_is_recorded_and_cloned(tmp_path, action_mode):
+    """Scripted key presses through the viewer's input path move the needle, are recorded as a Minari dataset
+    and load back through the behaviour-cloning loader."""
+    pytest.importorskip("minari", reason="recording needs Minari: pip install 'suture_gym[data]'")
+    from agents.imitation import load_minari_demos
+
+    app = _app(action_mode=action_mode, seed=3)
+    try:
+        grip0 = app.env.unwrapped.sim.grip_pose()[0]
+        app.set_recording(True)
+        for key in ("D", "D", "W", "E", "L", "R", "Q", "Q", "Q", "Q"):
+            app.press(key)
+            for _ in range(8):
+                app.step_once()
+        assert app.steps == 80 and app.teleop.presses == 10
+        grip = app.env.unwrapped.sim.grip_pose()[0]
+        # R dropped the proxy onto the grip after +2x, +y, +z; then -z four times (0.5 mm each): the needle went
+        # down by about the proxy's 2 mm and moved along +x.
+        assert grip[2] - grip0[2] < -1.0e-3
+        assert grip[0] - grip0[0] > 2.0e-4
+        summary = app.save_demonstrations("suture_gym/NeedleInsert-v1/teleop-test-v0", root=tmp_path)
+        assert summary == {"episodes": 1, "steps": 80, "dataset_id": "suture_gym/NeedleInsert-v1/teleop-test-v0",
+                           "root": str(tmp_path)}
+    finally:
+        app.close()
+    demos = load_minari_demos("suture_gym/NeedleInsert-v1/teleop-test-v0", root=tmp_path)
+    assert demos["actions"].shape == (80, 6) and demos["observations"].shape[0] == 80
+    assert demos["episode_starts"].tolist() == [0] and demos["episode_lengths"].tolist() == [80]
+    assert demos["truncated"][-1] and not demos["terminated"].any()  # stopped by the demonstrator
+    assert np.abs(demos["actions"]).max() > 0.05  # the keys acted
+    assert demos["tip_forces"].shape == (80,)
+
+
+@needs_viser
+def test_browser_shows_the_tissue_and_the_needle(tmp_path):
+    """The page in headless Chromium draws the scene: hiding the tissue, then the needle, changes the picture by
+    at least the area each covers (a blank or error page would not change)."""
+    pytest.importorskip("selenium", reason="the browser test needs selenium: pip install 'suture_gym[dev]'")
+    pytest.importorskip("PIL", reason="the browser test decodes screenshots with Pillow")
+    from PIL import Image
+
+    from suture_gym.viewer.browser import Browser, changed_pixels, find_chromium, scene_pixels
+
+    try:
+        find_chromium()
+    except RuntimeError as err:
+        pytest.skip(f"no browser for the viewer test: {err}")
+    app = _app(policy="expert")
+    try:
+        app.run(max_steps=170)  # the needle is in the tissue
+        app.set_paused(True)
+        with Browser() as browser:
+            browser.open(app.view.url)
+            browser.wait_for(lambda im: scene_pixels(im) > 5000)
+            time.sleep(1.0)
+            full = browser.screenshot()
+            Image.fromarray(full).save(tmp_path / "viewer.png")
+            for layer, area in (("tissue", 5000), ("needle", 150)):
+                app.view.scene.set_visible(layer, False)
+                browser.wait_for(lambda im, area=area: changed_pixels(im, full) > area, timeout=30)
+                app.view.scene.set_visible(layer, True)
+                browser.wait_for(lambda im: changed_pixels(im, full) < 50, timeout=30)
+    finally:
+        app.close()
