@@ -1,10 +1,11 @@
 """Screenshots of the viewer's page in headless Chromium (selenium), for tests and the README image.
 
-``python -m suture_gym.viewer.browser --out docs/media/viewer.png`` runs the scripted expert on NeedleInsert in a
-:class:`~suture_gym.viewer.app.ViewerApp` on a free port of 127.0.0.1, pauses it mid-insertion, opens the page in
-headless Chromium and saves a screenshot. Needs selenium (the ``dev`` extra) and Debian's ``chromium`` and
-``chromium-driver`` (or any Chromium and matching chromedriver on ``PATH``); :func:`find_chromium` says what is
-missing. Chromium renders WebGL in software (SwiftShader) here: no GPU or display is needed.
+``python -m suture_gym.viewer.browser`` (the README's image, ``docs/media/viewer.png``) runs the scripted expert on
+WoundClosure in a :class:`~suture_gym.viewer.app.ViewerApp` on a free port of 127.0.0.1, pauses it during the
+second stitch, opens the page in headless Chromium and saves a screenshot as a palette PNG. Needs selenium and
+Pillow (the ``dev`` extra) and Debian's ``chromium`` and ``chromium-driver`` (or any Chromium and matching
+chromedriver on ``PATH``); :func:`find_chromium` says what is missing. Chromium renders WebGL in software
+(SwiftShader) here: no GPU or display is needed.
 """
 
 from __future__ import annotations
@@ -117,11 +118,12 @@ def changed_pixels(a: np.ndarray, b: np.ndarray, threshold: int = 24) -> int:
 def main(argv: list[str] | None = None) -> int:
     parser = argparse.ArgumentParser(prog="python -m suture_gym.viewer.browser", description=__doc__,
                                      formatter_class=argparse.RawDescriptionHelpFormatter)
-    parser.add_argument("--env", default="SutureGym/NeedleInsert-v1")
+    parser.add_argument("--env", default="SutureGym/WoundClosure-v2")
     parser.add_argument("--policy", default="expert")
-    parser.add_argument("--steps", type=int, default=170, help="env steps before the screenshot")
-    parser.add_argument("--width", type=int, default=1100)
-    parser.add_argument("--height", type=int, default=700)
+    parser.add_argument("--steps", type=int, default=1300, help="env steps before the screenshot")
+    parser.add_argument("--width", type=int, default=1100, help="window width, px")
+    parser.add_argument("--height", type=int, default=900, help="window height, px (the page is a little less)")
+    parser.add_argument("--colors", type=int, default=256, help="palette size of the PNG (at most 256)")
     parser.add_argument("--out", default="docs/media/viewer.png")
     args = parser.parse_args(argv)
     from PIL import Image
@@ -140,7 +142,7 @@ def main(argv: list[str] | None = None) -> int:
     finally:
         app.close()
     Path(args.out).parent.mkdir(parents=True, exist_ok=True)
-    Image.fromarray(image).save(args.out, optimize=True)
+    Image.fromarray(image).quantize(colors=args.colors, method=Image.Quantize.FASTOCTREE).save(args.out, optimize=True)
     print(f"{args.out}: {image.shape[1]}x{image.shape[0]} px, {scene_pixels(image)} scene pixels")
     return 0
 

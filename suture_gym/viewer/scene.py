@@ -257,8 +257,24 @@ class StatePanel:
             self._tip_gauge = gui.add_progress_bar(0.0, color="green")
         with gui.add_folder("Reward terms"):
             self._terms = gui.add_markdown("")
-        self._sums: dict[str, float] = {}
+        #: Episode sums of the reward terms (name -> sum), over every step :meth:`count` was given.
+        self.sums: dict[str, float] = {}
+        self._counted_step = 0
         self.text: dict[str, str] = {}
+
+    def count(self, info: dict, step: int) -> None:
+        """Add step ``step``'s reward terms to the episode's sums (``step`` 0, a reset, clears them; a step
+        already counted is not counted again). Called for every step, shown or not."""
+        if step == 0:
+            self.sums, self._counted_step = {}, 0
+            return
+        if step == self._counted_step:
+            return
+        self._counted_step = step
+        for key, value in info.items():
+            if key.startswith("reward_"):
+                name = key[len("reward_"):]
+                self.sums[name] = self.sums.get(name, 0.0) + float(value)
 
     @staticmethod
     def _gauge(handle, fraction: float) -> None:
@@ -282,15 +298,8 @@ class StatePanel:
                        f"τ = {_vector(1e3 * wrench[3:], 2)} mN m (gauge: |F| / {self.force_span:g} N)"),
             "tip": f"**{tip:.3f} N** (puncture threshold {force_threshold:.2f} N)",
         }
-        if status.step == 0:
-            self._sums = {}
-        rows = []
-        for key, value in info.items():
-            if key.startswith("reward_"):
-                name = key[len("reward_"):]
-                if status.step > 0:
-                    self._sums[name] = self._sums.get(name, 0.0) + float(value)
-                rows.append(f"| {name} | {float(value):+.4f} | {self._sums.get(name, 0.0):+.3f} |")
+        rows = [f"| {key[len('reward_'):]} | {float(value):+.4f} | {self.sums.get(key[len('reward_'):], 0.0):+.3f} |"
+                for key, value in info.items() if key.startswith("reward_")]
         text["terms"] = "| term | step | episode |\n| --- | ---: | ---: |\n" + "\n".join(rows)
         self._episode.content = text["episode"]
         self._wrench.content = text["wrench"]
@@ -343,7 +352,8 @@ class LiveView:
 
     def show(self, frame: RenderFrame, arcs: list[np.ndarray], grip: np.ndarray, info: dict, status: EpisodeStatus,
              force: bool = False) -> bool:
-        """Push one frame unless the last push was less than ``1 / fps`` s ago (``force``: push anyway).
+        """Push one frame unless the last push was less than ``1 / fps`` s ago (``force``: push anyway). Call it
+        after every reset and step: the panel's episode sums of the reward terms count every step.
 
         Args:
             frame: the scene (:meth:`suture_gym.envs.base.SutureEnv.view_frame`).
@@ -355,6 +365,7 @@ class LiveView:
         Returns:
             Whether the frame was pushed.
         """
+        self.panel.count(info, status.step)
         now = time.perf_counter()
         if not force and now - self._last_push < self.min_interval:
             return False
