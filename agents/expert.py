@@ -131,7 +131,8 @@ def record_minari(env_id: str, episodes: int, dataset_id: str | None = None, see
                   code_permalink: str | None = None) -> dict:
     """Run ``episodes`` expert episodes of ``env_id`` (env seeds ``seed, seed + 1, ...``) and write them as the
     Minari dataset ``dataset_id`` (default :func:`agents.datasets.default_dataset_id`) under
-    :func:`agents.datasets.datasets_root` ``(root)``; needs ``pip install 'suture_gym[data]'``.
+    :func:`agents.datasets.datasets_root` ``(root)`` with :func:`agents.datasets.write_minari`; needs
+    ``pip install 'suture_gym[data]'``.
 
     Each episode holds Minari's ``observations`` (``T + 1``: the reset's, then each step's), ``actions (T, 6)``,
     ``rewards``, ``terminations``, ``truncations``, the infos of :data:`agents.datasets.INFO_KEYS` (``T + 1``),

@@ -43,6 +43,29 @@ def test_vector_env_refuses_human_render_mode():
         make_vector_env(NEEDLE, 2, workers=0, render_mode="human")
 
 
+def test_teleop_keys_move_the_proxy_and_bad_input_is_named():
+    from suture_gym.viewer.teleop import Teleop
+
+    env = gym.make(NEEDLE)
+    env.reset(seed=0)
+    teleop = Teleop(env, translation_step=1e-3, rotation_step=0.1)
+    teleop.sync()
+    start = teleop.position.copy()
+    for key in ("d", "W", "W", "Q"):
+        teleop.press(key)
+    np.testing.assert_allclose(teleop.position - start, [1e-3, 2e-3, -1e-3], atol=1e-12)
+    teleop.press("R")
+    np.testing.assert_allclose(teleop.position, env.unwrapped.sim.grip_pose()[0])
+    assert np.all(np.abs(teleop.action()) <= 1.0)
+    with pytest.raises(ValueError, match="unknown teleoperation key 'Z'"):
+        teleop.press("Z")
+    with pytest.raises(ValueError, match="translation_step"):
+        teleop.set_steps(0.0, 0.1)
+    with pytest.raises(ValueError, match="rotation_step"):
+        teleop.set_steps(1e-3, float("nan"))
+    env.close()
+
+
 @needs_viser
 def test_human_render_mode_streams_vertex_updates(monkeypatch):
     """``render_mode="human"`` serves the scene from the first reset; stepping updates the vertices of the meshes
@@ -128,7 +151,9 @@ def test_viewer_cli_runs_headless(capsys):
     from suture_gym.viewer.app import main
 
     assert main(["--env", NEEDLE, "--policy", "random", "--port", "0", "--steps", "5", "--speed", "0"]) == 0
-    assert "5 env steps" in capsys.readouterr().err
+    captured = capsys.readouterr()
+    assert "5 env steps" in captured.err
+    assert "viser" not in captured.out  # stdout stays the caller's (viser's address box goes to stderr)
 
 
 @needs_viser

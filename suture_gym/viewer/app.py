@@ -325,7 +325,7 @@ class ViewerApp:
     def _save_from_gui(self, dataset_id: str) -> None:
         try:
             self.save_demonstrations(dataset_id)
-        except (ValueError, OSError) as err:  # shown on the page: a GUI callback has nowhere else to report
+        except (ValueError, OSError, ImportError) as err:  # shown on the page: a callback has nowhere else to report
             self._message = f"not saved: {err}"
             self.push(force=True)
 

@@ -14,7 +14,9 @@ Scene frame: the simulator's world frame, metres, z up (gravity along -z).
 
 from __future__ import annotations
 
+import contextlib
 import math
+import sys
 import time
 from dataclasses import dataclass
 
@@ -331,7 +333,10 @@ class LiveView:
         if not (isinstance(fps, (int, float)) and math.isfinite(fps) and fps > 0.0):
             raise ValueError(f"fps must be a finite rate > 0 frames/s, got {fps!r}")
         viser = require_viser()
-        self.server = viser.ViserServer(host=host, port=port, label=label, verbose=False)
+        # viser prints its address box on stdout whatever ``verbose`` says: keep stdout for the caller's output
+        # (``--json`` scripts).
+        with contextlib.redirect_stdout(sys.stderr):
+            self.server = viser.ViserServer(host=host, port=port, label=label, verbose=False)
         self.host = host
         self.min_interval = 1.0 / float(fps)
         self.scene = LiveScene(self.server)
@@ -379,5 +384,6 @@ class LiveView:
         return True
 
     def close(self) -> None:
-        """Stop the server."""
-        self.server.stop()
+        """Stop the server (viser's goodbye goes to stderr too)."""
+        with contextlib.redirect_stdout(sys.stderr):
+            self.server.stop()
