@@ -147,6 +147,38 @@ def test_viewer_plays_a_policy_and_pauses():
 
 
 @needs_viser
+def test_the_page_controls_drive_the_viewer():
+    """Each input of the page, set as a browser would set it, reaches the viewer."""
+    app = _app(policy="expert")
+    c = app.controls
+    try:
+        c["Paused"].value = True
+        assert app.paused
+        c["Step"].value = True
+        assert app.steps == 1
+        c["Seed"].value = 5
+        c["Reset"].value = True
+        assert (app.seed, app.steps) == (5, 0)
+        c["As fast as possible"].value = False
+        c["Speed (x real time)"].value = 0.5
+        assert app.speed == 0.5
+        c["Move step (mm)"].value = 1.0
+        assert app.teleop.translation_step == pytest.approx(1e-3)
+        z = app.env.unwrapped.sim.grip_pose()[0][2]
+        c["Move z"].value = "+ (E)"  # a teleoperation button takes over from the policy
+        c["Move z"].value = "− (Q)"
+        c["Move z"].value = "− (Q)"
+        assert app.driver == "teleop" and c["Driver"].value == "teleop"
+        assert app.teleop.position[2] == pytest.approx(z - 1e-3)
+        c["Show needle"].value = False
+        assert not app.view.scene.nodes["needle"].visible
+        c["Driver"].value = "policy: expert"
+        assert app.driver == "policy"
+    finally:
+        app.close()
+
+
+@needs_viser
 def test_viewer_cli_runs_headless(capsys):
     from suture_gym.viewer.app import main
 

@@ -56,6 +56,9 @@ class ViewerApp:
         host, port: where to serve the page (port 0: any free port).
         fps: most frames pushed to the page per second.
         speed: simulated seconds per wall-clock second to aim for; None: as fast as the simulator runs.
+
+    :attr:`controls` holds the page's inputs (viser handles) by label; assigning one's ``value`` runs its callback
+    as a change in the page does.
     """
 
     def __init__(self, env_id: str, config=None, policy: str = TELEOP, action_mode: str | None = None,
@@ -148,14 +151,14 @@ class ViewerApp:
             if driver == TELEOP and self.driver != TELEOP:
                 self.teleop.sync()
             self.driver = driver
-            self._driver_gui.value = self._driver_label()
+            self.controls["Driver"].value = self._driver_label()
             self.view.scene.update_proxy(self.teleop.position if driver == TELEOP else None, self.teleop.quat)
 
     def set_paused(self, paused: bool) -> None:
         """Pause or resume the stepping loop (:meth:`step_once` still steps)."""
         with self._lock:
             self.paused = bool(paused)
-            self._paused_gui.value = self.paused
+            self.controls["Paused"].value = self.paused
             self.push(force=True)
 
     def set_speed(self, speed: float | None) -> None:
@@ -173,7 +176,7 @@ class ViewerApp:
             if recording == self.recording:
                 return
             self.recording = recording
-            self._record_gui.value = recording
+            self.controls["Record episodes"].value = recording
             if recording:
                 self.reset(self.seed)
             else:
@@ -270,57 +273,60 @@ class ViewerApp:
         return TELEOP if self.driver == TELEOP else f"policy: {self.policy_name}"
 
     def _gui(self) -> None:
+        """Build the page's controls; each is kept in :attr:`controls` under its label."""
         gui = self.view.server.gui
+        c = self.controls = {}
+
+        def add(handle):
+            c[handle.label] = handle
+            return handle
+
         with gui.add_folder("Controls", order=-10):
-            self._paused_gui = gui.add_checkbox("Paused", self.paused, hint="space")
-            self._paused_gui.on_update(lambda _: self.set_paused(self._paused_gui.value))
-            gui.add_button("Step", hint="one env step (enter)").on_click(lambda _: self.step_once())
-            seed = gui.add_number("Seed", self.seed, step=1)
-            gui.add_button("Reset").on_click(lambda _: self.reset(int(seed.value)))
-            fast = gui.add_checkbox("As fast as possible", self.speed is None)
-            speed = gui.add_slider("Speed (x real time)", 0.05, 2.0, 0.05, self.speed or 1.0)
-            fast.on_update(lambda _: self.set_speed(None if fast.value else float(speed.value)))
-            speed.on_update(lambda _: self.set_speed(None if fast.value else float(speed.value)))
+            add(gui.add_checkbox("Paused", self.paused, hint="space")).on_update(
+                lambda _: self.set_paused(c["Paused"].value))
+            add(gui.add_button("Step", hint="one env step (enter)")).on_click(lambda _: self.step_once())
+            add(gui.add_number("Seed", self.seed, step=1))
+            add(gui.add_button("Reset")).on_click(lambda _: self.reset(int(c["Seed"].value)))
+            add(gui.add_checkbox("As fast as possible", self.speed is None))
+            add(gui.add_slider("Speed (x real time)", 0.05, 2.0, 0.05, self.speed or 1.0))
+            for label in ("As fast as possible", "Speed (x real time)"):
+                c[label].on_update(lambda _: self.set_speed(
+                    None if c["As fast as possible"].value else float(c["Speed (x real time)"].value)))
             options = [TELEOP] if self._policy is None else [f"policy: {self.policy_name}", TELEOP]
-            self._driver_gui = gui.add_dropdown("Driver", options, initial_value=self._driver_label())
-            self._driver_gui.on_update(
-                lambda _: self.set_driver(TELEOP if self._driver_gui.value == TELEOP else "policy"))
+            add(gui.add_dropdown("Driver", options, initial_value=self._driver_label())).on_update(
+                lambda _: self.set_driver(TELEOP if c["Driver"].value == TELEOP else "policy"))
         with gui.add_folder("Teleoperation"):
             gui.add_markdown("Keys: D/A ±x, W/S ±y, E/Q ±z (move); L/J, I/K, O/U (turn about x, y, z); R: proxy to "
                              "the grip. The holder follows the proxy (axes) through the virtual coupling.")
-            for axis, (plus, minus) in enumerate((("D", "A"), ("W", "S"), ("E", "Q"))):
-                self._key_buttons(gui, f"Move {'xyz'[axis]}", minus, plus)
-            for axis, (plus, minus) in enumerate((("L", "J"), ("I", "K"), ("O", "U"))):
-                self._key_buttons(gui, f"Turn {'xyz'[axis]}", minus, plus)
-            move = gui.add_slider("Move step (mm)", 0.05, 2.0, 0.05, 1e3 * self.teleop.translation_step)
-            turn = gui.add_slider("Turn step (deg)", 0.5, 10.0, 0.5, float(np.degrees(self.teleop.rotation_step)))
-
-            def steps(_):
-                self.teleop.set_steps(1e-3 * float(move.value), float(np.radians(turn.value)))
-
-            move.on_update(steps)
-            turn.on_update(steps)
-            gui.add_button("Proxy to grip (R)").on_click(lambda _: self.press(RESYNC_KEY))
+            for kind, pairs in (("Move", (("A", "D"), ("S", "W"), ("Q", "E"))),
+                                ("Turn", (("J", "L"), ("K", "I"), ("U", "O")))):
+                for axis, (minus, plus) in zip("xyz", pairs, strict=True):
+                    group = add(gui.add_button_group(f"{kind} {axis}", (f"− ({minus})", f"+ ({plus})")))
+                    group.on_click(lambda event, minus=minus, plus=plus: self.press(
+                        minus if event.target.value.startswith("−") else plus))
+            add(gui.add_slider("Move step (mm)", 0.05, 2.0, 0.05, 1e3 * self.teleop.translation_step))
+            add(gui.add_slider("Turn step (deg)", 0.5, 10.0, 0.5, float(np.degrees(self.teleop.rotation_step))))
+            for label in ("Move step (mm)", "Turn step (deg)"):
+                c[label].on_update(lambda _: self.teleop.set_steps(1e-3 * float(c["Move step (mm)"].value),
+                                                                   float(np.radians(c["Turn step (deg)"].value))))
+            add(gui.add_button("Proxy to grip (R)")).on_click(lambda _: self.press(RESYNC_KEY))
         with gui.add_folder("View", expand_by_default=False):
-            opacity = gui.add_slider("Tissue opacity", 0.1, 1.0, 0.05, 0.8)
-            opacity.on_update(lambda _: self.view.scene.set_tissue_opacity(float(opacity.value)))
+            add(gui.add_slider("Tissue opacity", 0.1, 1.0, 0.05, 0.8)).on_update(
+                lambda _: self.view.scene.set_tissue_opacity(float(c["Tissue opacity"].value)))
             for layer in LAYERS:
-                box = gui.add_checkbox(f"Show {layer.replace('_', ' ')}", True)
-                box.on_update(lambda _, layer=layer, box=box: self.view.scene.set_visible(layer, box.value))
+                add(gui.add_checkbox(f"Show {layer.replace('_', ' ')}", True)).on_update(
+                    lambda event, layer=layer: self.view.scene.set_visible(layer, event.target.value))
         with gui.add_folder("Record"):
-            self._record_gui = gui.add_checkbox("Record episodes", self.recording)
-            self._record_gui.on_update(lambda _: self.set_recording(self._record_gui.value))
-            dataset = gui.add_text("Dataset id", default_dataset_id(self.env_id, "teleop"))
-            gui.add_button("Save as Minari dataset").on_click(lambda _: self._save_from_gui(dataset.value))
+            add(gui.add_checkbox("Record episodes", self.recording)).on_update(
+                lambda _: self.set_recording(c["Record episodes"].value))
+            add(gui.add_text("Dataset id", default_dataset_id(self.env_id, "teleop")))
+            add(gui.add_button("Save as Minari dataset")).on_click(
+                lambda _: self._save_from_gui(c["Dataset id"].value))
             self._record_status = gui.add_markdown("not recording")
         for key in (*KEYS, RESYNC_KEY):
             gui.add_command(f"Teleoperation key {key}", hotkey=key).on_trigger(lambda _, k=key: self.press(k))
         gui.add_command("Pause / resume", hotkey="space").on_trigger(lambda _: self.set_paused(not self.paused))
         gui.add_command("One step", hotkey="enter").on_trigger(lambda _: self.step_once())
-
-    def _key_buttons(self, gui, label: str, minus: str, plus: str) -> None:
-        group = gui.add_button_group(label, (f"− ({minus})", f"+ ({plus})"))
-        group.on_click(lambda _: self.press(minus if group.value.startswith("−") else plus))
 
     def _save_from_gui(self, dataset_id: str) -> None:
         try:
