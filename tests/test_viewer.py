@@ -178,6 +178,41 @@ def test_the_page_controls_drive_the_viewer():
         app.close()
 
 
+class FakeSpaceMouse:
+    """A 3D mouse held at one deflection (pyspacemouse's device interface: ``read()``, ``close()``)."""
+
+    def __init__(self, **deflection):
+        self.state = type("State", (), {axis: deflection.get(axis, 0.0)
+                                        for axis in ("x", "y", "z", "roll", "pitch", "yaw")})()
+        self.closed = False
+
+    def read(self):
+        return self.state
+
+    def close(self):
+        self.closed = True
+
+
+@needs_viser
+def test_a_3d_mouse_takes_over_and_moves_the_proxy():
+    app = _app(policy="expert")
+    mouse = FakeSpaceMouse(z=-0.5, yaw=0.01)  # yaw inside the dead band
+    try:
+        app.attach_spacemouse(mouse)
+        app.step_once()
+        assert app.driver == "teleop"  # deflecting it took over from the policy
+        z = app.teleop.position[2]
+        quat = app.teleop.quat.copy()
+        for _ in range(10):
+            app.step_once()
+        # 0.5 of full deflection at 2 cm/s for 10 env steps of 5 ms
+        assert app.teleop.position[2] - z == pytest.approx(-0.5 * 0.02 * 10 * app.control_dt)
+        np.testing.assert_array_equal(app.teleop.quat, quat)
+    finally:
+        app.close()
+    assert mouse.closed
+
+
 @needs_viser
 def test_viewer_cli_runs_headless(capsys):
     from suture_gym.viewer.app import main

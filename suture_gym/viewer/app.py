@@ -3,8 +3,8 @@
 It serves one env on a viser page (``http://127.0.0.1:8080`` by default; the simulation runs whether or not a
 browser is connected) and steps it with a driver: a policy (``--policy expert | random | path/to/model.zip``,
 the loaders of :mod:`agents.evaluation`, a model with the VecNormalize statistics saved beside it) or the
-teleoperator (``--policy teleop``, the default; :class:`~suture_gym.viewer.teleop.Teleop`). A teleoperation key
-pressed while a policy drives takes over from it.
+teleoperator (``--policy teleop``, the default; :class:`~suture_gym.viewer.teleop.Teleop`; ``--spacemouse`` adds a
+3D mouse). A teleoperation key pressed (or the 3D mouse deflected) while a policy drives takes over from it.
 
 Page: the scene and read-outs of :class:`~suture_gym.viewer.scene.LiveView`; *Controls*: pause, single step,
 reset with a seed, speed (simulated seconds per wall-clock second; the simulator's own rate caps it), driver;
@@ -36,7 +36,7 @@ import suture_gym  # noqa: F401  (registers the ids)
 from agents.datasets import default_dataset_id
 from agents.evaluation import episode_end, make_policy, model_vecnormalize
 from suture_gym.viewer.scene import LAYERS, EpisodeStatus, LiveView
-from suture_gym.viewer.teleop import KEYS, RESYNC_KEY, DemoRecorder, Teleop
+from suture_gym.viewer.teleop import KEYS, RESYNC_KEY, DemoRecorder, SpaceMouse, Teleop
 
 #: The teleoperator as a driver (``--policy teleop``).
 TELEOP = "teleop"
@@ -75,6 +75,8 @@ class ViewerApp:
             self._policy = make_policy(policy, self.env, seed, model_vecnormalize(policy))
         self.driver = TELEOP if self._policy is None else "policy"
         self.teleop = Teleop(self.env)
+        #: The attached 3D mouse (:meth:`attach_spacemouse`), polled before every step.
+        self.spacemouse: SpaceMouse | None = None
         self.recorder = DemoRecorder()
         self.recording = False
         self._recorded_drivers: set[str] = set()
@@ -117,6 +119,9 @@ class ViewerApp:
         with self._lock:
             if self.end is not None:
                 return None
+            if self.spacemouse is not None and self.spacemouse.poll(self.control_dt) and self.driver != TELEOP:
+                self.set_driver(TELEOP)  # the 3D mouse takes over like a key, from where the grip is
+                self.spacemouse.poll(self.control_dt)
             action = self.teleop.action() if self.driver == TELEOP else np.asarray(self._policy(self._obs))
             obs, reward, terminated, truncated, info = self.env.step(action)
             if self.recording:
@@ -140,6 +145,12 @@ class ViewerApp:
                 self.set_driver(TELEOP)
             self.teleop.press(key)
             self.view.scene.update_proxy(self.teleop.position, self.teleop.quat)
+
+    def attach_spacemouse(self, device=None) -> None:
+        """Drive the proxy with a 3D mouse too (:class:`~suture_gym.viewer.teleop.SpaceMouse`; ``device``: an
+        opened device, None: the first one attached). Deflecting it takes over from a policy, as a key does."""
+        with self._lock:
+            self.spacemouse = SpaceMouse(self.teleop, device)
 
     def set_driver(self, driver: str) -> None:
         """``teleop`` or ``policy`` (the ``--policy`` given) acts from the next step on."""
@@ -260,8 +271,10 @@ class ViewerApp:
         self._stop.set()
 
     def close(self) -> None:
-        """Stop the page's server and close the env."""
+        """Stop the page's server, release the 3D mouse and close the env."""
         self.stop()
+        if self.spacemouse is not None:
+            self.spacemouse.close()
         self.view.close()
         self.env.close()
 
@@ -353,14 +366,18 @@ def main(argv: list[str] | None = None) -> int:
                         help="simulated seconds per wall-clock second to aim for (0: as fast as possible)")
     parser.add_argument("--steps", type=int, default=None, help="exit after this many env steps (default: never)")
     parser.add_argument("--paused", action="store_true", help="start paused")
+    parser.add_argument("--spacemouse", action="store_true",
+                        help="teleoperate with the first 3D mouse attached (pyspacemouse, the 'spacemouse' extra)")
     args = parser.parse_args(argv)
     if args.speed < 0:
         parser.error(f"--speed must be >= 0, got {args.speed}")
     app = ViewerApp(args.env, config=args.config, policy=args.policy, action_mode=args.action_mode, seed=args.seed,
                     host=args.host, port=args.port, fps=args.fps, speed=args.speed or None)
-    app.set_paused(args.paused)
-    print(f"suture_gym viewer: {args.env} at {app.view.url} (Ctrl-C to quit)", file=sys.stderr)
     try:
+        app.set_paused(args.paused)
+        if args.spacemouse:
+            app.attach_spacemouse()
+        print(f"suture_gym viewer: {args.env} at {app.view.url} (Ctrl-C to quit)", file=sys.stderr)
         summary = app.run(max_steps=args.steps)
     except KeyboardInterrupt:
         summary = None

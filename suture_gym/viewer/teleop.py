@@ -10,7 +10,8 @@ recorded episode replays in the same action mode.
 
 Keys (:data:`KEYS`, world frame, z up): D/A +x/-x, W/S +y/-y, E/Q +z/-z move the proxy by the translation
 step; L/J, I/K, O/U turn it about +x/-x, +y/-y, +z/-z through the grip point by the rotation step; R puts the
-proxy back on the grip (drops what the holder has not followed).
+proxy back on the grip (drops what the holder has not followed). A 3D mouse (:class:`SpaceMouse`, pyspacemouse)
+moves the proxy continuously instead.
 
 :class:`DemoRecorder` buffers teleoperated episodes and writes them as a Minari dataset in the format of
 :mod:`agents.datasets` (the scripted expert's), which :func:`agents.imitation.load_minari_demos` reads for
@@ -97,6 +98,55 @@ class Teleop:
     def action(self) -> np.ndarray:
         """``(6,) float32`` action in [-1, 1] pulling the holder toward the proxy (module docstring)."""
         return self.env.action_toward(self.position, self.quat)
+
+
+class SpaceMouse:
+    """A 3D mouse moving a :class:`Teleop`'s proxy (``pip install 'suture_gym[spacemouse]'``: pyspacemouse 2, which
+    needs the system's hidapi library, Debian ``libhidapi-hidraw0``).
+
+    Each :meth:`poll` reads the device's deflection (x, y, z, roll, pitch, yaw in [-1, 1], right-handed with z up:
+    pyspacemouse's ``HID_Z_UP`` convention, the scene's frame) and moves the proxy at ``speed`` m/s and turns it
+    at ``turn_rate`` rad/s per unit deflection over ``dt`` (simulated) seconds; deflections below ``deadband``
+    count as 0.
+
+    Args:
+        teleop: the proxy's owner.
+        device: an opened device with ``read()`` and ``close()`` (None: open the first one attached;
+            RuntimeError from pyspacemouse when there is none).
+        speed: proxy speed at full deflection, m/s (a surgeon's hand: 2 cm/s).
+        turn_rate: proxy turn rate at full deflection, rad/s.
+        deadband: deflection treated as rest, in [0, 1).
+    """
+
+    def __init__(self, teleop: Teleop, device=None, speed: float = 0.02, turn_rate: float = 1.0,
+                 deadband: float = 0.05) -> None:
+        self.teleop = teleop
+        self.speed = _step("speed", speed, 1.0)
+        self.turn_rate = _step("turn_rate", turn_rate, 10.0)
+        if isinstance(deadband, bool) or not isinstance(deadband, (int, float)) or not 0.0 <= deadband < 1.0:
+            raise ValueError(f"deadband must be a number in [0, 1), got {deadband!r}")
+        self.deadband = float(deadband)
+        if device is None:
+            try:
+                import pyspacemouse
+            except ImportError as err:
+                raise ImportError("a 3D mouse needs pyspacemouse: pip install 'suture_gym[spacemouse]'") from err
+            device = pyspacemouse.open(axis_convention=pyspacemouse.AxisConvention.HID_Z_UP)
+        self.device = device
+
+    def poll(self, dt: float) -> bool:
+        """Read the device and move the proxy for ``dt`` s; returns whether it was deflected."""
+        state = self.device.read()
+        d = np.array([state.x, state.y, state.z, state.roll, state.pitch, state.yaw], dtype=np.float64)
+        d[np.abs(d) < self.deadband] = 0.0
+        if not np.any(d):
+            return False
+        self.teleop.nudge(d[:3] * self.speed * dt, d[3:] * self.turn_rate * dt)
+        return True
+
+    def close(self) -> None:
+        """Release the device."""
+        self.device.close()
 
 
 class DemoRecorder:
