@@ -15,6 +15,7 @@ import pytest
 from suture_gym.envs import ENV_IDS, GOAL_ENV_IDS
 from suture_gym.envs.config import load_config
 from suture_gym.viewer import require_viser
+from suture_gym.viewer.scene import EpisodeStatus
 
 NEEDLE = "SutureGym/NeedleInsert-v1"
 needs_viser = pytest.mark.skipif(importlib.util.find_spec("viser") is None,
@@ -117,6 +118,37 @@ def test_every_id_has_the_human_render_mode(env_id):
     assert {"tissue", "needle", "markers", "planned_arcs", "reaction_force"} <= set(nodes)
     assert ("suture" in nodes) == thread
     env.close()
+
+
+@needs_viser
+def test_a_changed_layout_replaces_the_nodes_it_changes(recwarn):
+    """A frame whose markers, strand or triangles differ in number replaces those nodes (a new episode layout);
+    hidden layers stay hidden."""
+    from suture_gym.render import RenderFrame
+    from suture_gym.viewer.scene import LiveView
+
+    view = LiveView(port=0)
+    try:
+        tissue = np.array([[0, 0, 0], [0.01, 0, 0], [0, 0.01, 0], [0.01, 0.01, 0]], dtype=float)
+        strand = np.array([[0, 0, 0.01], [0.005, 0, 0.012], [0.01, 0, 0.01]])
+        arcs = [strand]
+        frame = RenderFrame(tissue, np.array([[0, 1, 2]]), needle_q=strand, marker_q=tissue[:2])
+        status = EpisodeStatus(0, 0, 0.0, 0.0, "running", "test")
+        view.show(frame, arcs, strand[0], {}, status, force=True)
+        first = dict(view.scene.nodes)
+        view.scene.set_visible("markers", False)
+        frame = RenderFrame(tissue, np.array([[0, 1, 2], [1, 3, 2]]), needle_q=strand[:2], marker_q=tissue)
+        view.show(frame, arcs, strand[0], {}, status, force=True)
+        nodes = view.scene.nodes
+        for layer in ("tissue", "needle", "markers"):
+            assert nodes[layer] is not first[layer]
+            assert view.server.scene.get_handle_by_name(f"/{layer}") is not None
+        assert nodes["planned_arcs"] is first["planned_arcs"] and nodes["reaction_force"] is first["reaction_force"]
+        assert len(nodes["markers"].points) == 4 and not nodes["markers"].visible
+        assert len(nodes["tissue"].faces) == 2 and len(nodes["needle"].points) == 1
+        assert not [w for w in recwarn if "remove" in str(w.message)]
+    finally:
+        view.close()
 
 
 def _app(**kwargs):

@@ -104,6 +104,7 @@ class ViewerApp:
         """Start an episode with env seed ``seed`` (None: the next seed after the current one)."""
         with self._lock:
             self.seed = self.seed + 1 if seed is None else int(seed)
+            self.controls["Seed"].value = self.seed
             obs, info = self.env.reset(seed=self.seed)
             self._obs = obs
             self.teleop.sync()

@@ -122,14 +122,14 @@ class LiveScene:
         if "tissue" in self.nodes:
             self.nodes["tissue"].opacity = None if opacity == 1.0 else self._tissue_opacity
 
-    def _add(self, layer: str, handle):
-        """Register ``handle`` as ``layer``'s node (replacing and removing an old one), hidden if the layer is."""
-        old = self.nodes.get(layer)
+    def _add(self, layer: str, create) -> None:
+        """Make ``layer``'s node with ``create()`` (removing the old one first), hidden if the layer is."""
+        old = self.nodes.pop(layer, None)
         if old is not None:
             old.remove()
+        handle = create()
         handle.visible = layer not in self._hidden
         self.nodes[layer] = handle
-        return handle
 
     def frame_camera(self, points: np.ndarray) -> None:
         """Point the initial camera (and the client's "reset view") at the box of ``points`` (N, 3) m, from the
@@ -162,7 +162,7 @@ class LiveScene:
         nodes = self.nodes
         if "tissue" not in nodes or self._faces is None or not np.array_equal(self._faces, faces):
             self._faces = faces.copy()
-            self._add("tissue", scene.add_mesh_simple(
+            self._add("tissue", lambda: scene.add_mesh_simple(
                 "/tissue", np.nan_to_num(q), faces.astype(np.uint32), color=_rgb255(st.tissue_color),
                 side="double", opacity=None if self._tissue_opacity == 1.0 else self._tissue_opacity,
                 cast_shadow=False, receive_shadow=False))
@@ -177,16 +177,17 @@ class LiveScene:
             colors[1::2] = _rgb255(st.exit_color)
             if "markers" not in nodes or len(nodes["markers"].points) != len(markers):
                 radius = float(np.max(frame.marker_radius))
-                self._add("markers", scene.add_point_cloud("/markers", markers, colors, point_size=2.0 * radius,
-                                                           point_shape="circle", precision="float32"))
+                self._add("markers", lambda: scene.add_point_cloud("/markers", markers, colors,
+                                                                   point_size=2.0 * radius, point_shape="circle",
+                                                                   precision="float32"))
             else:
                 nodes["markers"].points = markers
         arc_segments = [_segments(a) for a in arcs if _finite(np.asarray(a))]
         if arc_segments:
             points = np.concatenate(arc_segments)
             if "planned_arcs" not in nodes or len(nodes["planned_arcs"].points) != len(points):
-                self._add("planned_arcs", scene.add_line_segments("/planned_arcs", points, (250, 200, 40),
-                                                                  thickness=2.0, thickness_units="screen"))
+                self._add("planned_arcs", lambda: scene.add_line_segments(
+                    "/planned_arcs", points, (250, 200, 40), thickness=2.0, thickness_units="screen"))
             else:
                 nodes["planned_arcs"].points = points
         grip = np.asarray(grip, dtype=np.float64)
@@ -194,9 +195,9 @@ class LiveScene:
         if _finite(grip[None]) and _finite(force[None]):
             arrow = np.array([[grip, grip + self.arrow_m_per_n * force]], dtype=np.float32)
             if "reaction_force" not in nodes:
-                self._add("reaction_force", scene.add_arrows("/reaction_force", arrow, (230, 60, 30),
-                                                             shaft_radius=2.0e-4, head_radius=5.0e-4,
-                                                             head_length=1.0e-3))
+                self._add("reaction_force", lambda: scene.add_arrows(
+                    "/reaction_force", arrow, (230, 60, 30), shaft_radius=2.0e-4, head_radius=5.0e-4,
+                    head_length=1.0e-3))
             else:
                 nodes["reaction_force"].points = arrow
 
@@ -211,8 +212,8 @@ class LiveScene:
         position = tuple(float(c) for c in position)
         wxyz = (1.0, 0.0, 0.0, 0.0) if quat is None else tuple(float(c) for c in quat)
         if proxy is None:
-            self._add("teleop_proxy", self.server.scene.add_frame("/teleop_proxy", axes_length=3.0e-3,
-                                                                  axes_radius=1.5e-4, position=position, wxyz=wxyz))
+            self._add("teleop_proxy", lambda: self.server.scene.add_frame(
+                "/teleop_proxy", axes_length=3.0e-3, axes_radius=1.5e-4, position=position, wxyz=wxyz))
         else:
             proxy.position = position
             proxy.wxyz = wxyz
@@ -227,8 +228,8 @@ class LiveScene:
         if handle is not None and len(handle.points) == len(segments):
             handle.points = segments
             return
-        self._add(layer, self.server.scene.add_line_segments(f"/{layer}", segments, _rgb255(rgb),
-                                                             thickness=max(thickness, MIN_STRAND_THICKNESS)))
+        self._add(layer, lambda: self.server.scene.add_line_segments(
+            f"/{layer}", segments, _rgb255(rgb), thickness=max(thickness, MIN_STRAND_THICKNESS)))
 
 
 def _vector(values, digits: int) -> str:
