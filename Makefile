@@ -16,9 +16,9 @@ $(PY):
 	$(PYTHON) -m venv $(VENV)
 	$(PY) -m pip install --quiet --upgrade pip
 
-# Core package + test/render/mesh extras. Re-run when pyproject.toml changes.
+# Core package + test/render/viewer extras. Re-run when pyproject.toml changes.
 $(VENV)/.core: pyproject.toml | $(PY)
-	$(PY) -m pip install --quiet -e ".[dev,render]"
+	$(PY) -m pip install --quiet -e ".[dev,render,viewer]"
 	touch $@
 
 # RL extras: CPU torch first, then SB3 and friends.

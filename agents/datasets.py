@@ -1,7 +1,8 @@
 """Demonstrations as Minari datasets, the Farama standard for offline RL (``pip install 'suture_gym[data]'``).
 
-A dataset is written by :func:`agents.expert.record_minari` (the scripted expert) and read back for behaviour
-cloning by :func:`agents.imitation.load_minari_demos`; any Minari user reads it with
+A dataset is written by :func:`write_minari` from :class:`RecordedEpisode` records: the scripted expert's
+(:func:`agents.expert.record_minari`) or a human's teleoperated ones (:mod:`suture_gym.viewer`). It is read back
+for behaviour cloning by :func:`agents.imitation.load_minari_demos`; any Minari user reads it with
 ``minari.load_dataset(dataset_id)`` (and rebuilds the env with ``dataset.recover_environment()`` after
 ``import suture_gym``).
 
@@ -18,8 +19,9 @@ observations per episode of ``T`` steps). The env seed of each episode is Minari
 from __future__ import annotations
 
 import os
-from collections.abc import Iterator
+from collections.abc import Iterator, Sequence
 from contextlib import contextmanager
+from dataclasses import dataclass, field
 from pathlib import Path
 
 import numpy as np
@@ -78,3 +80,68 @@ def load_dataset(dataset_id: str, root: str | Path | None = None):
             known = sorted(minari.list_local_datasets()) if folder.is_dir() else []
             raise FileNotFoundError(f"no Minari dataset {dataset_id!r} in {str(folder)!r}; it holds {known}")
         return minari.load_dataset(dataset_id)
+
+
+@dataclass
+class RecordedEpisode:
+    """One recorded episode of ``T`` steps: ``reset_obs``/``reset_info`` from ``env.reset(seed=seed)``, then per
+    step the action taken, the observation, reward, flags and info ``env.step`` returned."""
+
+    seed: int
+    reset_obs: object
+    reset_info: dict
+    actions: list[np.ndarray] = field(default_factory=list)
+    observations: list = field(default_factory=list)
+    rewards: list[float] = field(default_factory=list)
+    terminated: list[bool] = field(default_factory=list)
+    truncated: list[bool] = field(default_factory=list)
+    infos: list[dict] = field(default_factory=list)
+
+
+def write_minari(dataset_id: str, episodes: Sequence[RecordedEpisode], env, root: str | Path | None = None,
+                 algorithm_name: str | None = None, description: str | None = None, author: str | None = None,
+                 author_email: str | None = None, code_permalink: str | None = None) -> Path:
+    """Write ``episodes`` as the Minari dataset ``dataset_id`` under :func:`datasets_root` ``(root)``.
+
+    Each episode holds Minari's ``observations`` (``T + 1``: the reset's, then each step's), ``actions (T, A)
+    float32``, ``rewards``, ``terminations``, ``truncations``, the infos of :data:`INFO_KEYS` (``T + 1``) and its
+    env seed. ``env`` (made by ``gym.make``) gives the recorded env spec, so ``dataset.recover_environment()``
+    rebuilds it after ``import suture_gym``; its ``env_kwargs`` must then be JSON data (a config path, not an
+    ``EnvConfig``). ``algorithm_name``, ``description``, ``author``, ``author_email`` and ``code_permalink`` go to
+    the dataset's metadata. Needs ``pip install 'suture_gym[data]'``.
+
+    Raises:
+        ValueError: no episode, an episode without a step, or a dataset ``dataset_id`` exists there already
+            (Minari never overwrites one).
+
+    Returns:
+        The datasets folder written to.
+    """
+    import minari
+    from minari.data_collector import EpisodeBuffer
+
+    if not episodes:
+        raise ValueError(f"no episode to write to the Minari dataset {dataset_id!r}")
+    buffers = []
+    for k, episode in enumerate(episodes):
+        if not episode.actions:
+            raise ValueError(f"episode {k} (env seed {episode.seed}) has no step")
+        infos = [episode.reset_info, *episode.infos]
+        buffers.append(EpisodeBuffer(
+            id=k, seed=episode.seed, observations=_stack([episode.reset_obs, *episode.observations]),
+            actions=np.asarray(episode.actions, dtype=np.float32), rewards=episode.rewards,
+            terminations=episode.terminated, truncations=episode.truncated,
+            infos={key: np.asarray([i.get(key, default) for i in infos], dtype=dtype)
+                   for key, (default, dtype) in INFO_KEYS.items()}))
+    with minari_root(root) as folder:
+        minari.create_dataset_from_buffers(
+            dataset_id, buffers, env=env, eval_env=env, algorithm_name=algorithm_name, author=author,
+            author_email=author_email, code_permalink=code_permalink, description=description)
+    return folder
+
+
+def _stack(observations: list):
+    """``(T + 1, D) float32`` of flat observations, or a dict of such arrays for Dict observations."""
+    if isinstance(observations[0], dict):
+        return {key: np.asarray([o[key] for o in observations], dtype=np.float32) for key in observations[0]}
+    return np.asarray(observations, dtype=np.float32)

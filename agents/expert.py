@@ -16,12 +16,12 @@ from __future__ import annotations
 import argparse
 import sys
 from collections.abc import Iterator
-from dataclasses import dataclass, field
 from pathlib import Path
 
 import gymnasium as gym
 import numpy as np
 
+from agents.datasets import RecordedEpisode
 from suture_gym.tasks.surgeon import ScriptedSurgeon
 
 
@@ -31,25 +31,10 @@ class ExpertPolicy(ScriptedSurgeon):
     rad/s, ``pull_speed`` m/s)."""
 
 
-@dataclass
-class ExpertEpisode:
-    """One expert episode of ``T`` steps: ``reset_obs``/``reset_info`` from ``env.reset(seed=seed)``, then per
-    step the action taken, the observation, reward, flags and info ``env.step`` returned."""
-
-    seed: int
-    reset_obs: object
-    reset_info: dict
-    actions: list[np.ndarray] = field(default_factory=list)
-    observations: list = field(default_factory=list)
-    rewards: list[float] = field(default_factory=list)
-    terminated: list[bool] = field(default_factory=list)
-    truncated: list[bool] = field(default_factory=list)
-    infos: list[dict] = field(default_factory=list)
-
-
-def expert_episodes(env: gym.Env, episodes: int, seed: int = 0, progress: bool = False) -> Iterator[ExpertEpisode]:
+def expert_episodes(env: gym.Env, episodes: int, seed: int = 0,
+                    progress: bool = False) -> Iterator[RecordedEpisode]:
     """Run :class:`ExpertPolicy` on ``env`` for ``episodes`` episodes (env seeds ``seed, seed + 1, ...``), each
-    until it terminates or is truncated; yields each as an :class:`ExpertEpisode` once it ends."""
+    until it terminates or is truncated; yields each as an :class:`~agents.datasets.RecordedEpisode` once it ends."""
     if isinstance(episodes, bool) or not isinstance(episodes, int) or episodes <= 0:
         raise ValueError(f"episodes must be a positive integer, got {episodes!r}")
     expert = ExpertPolicy(env)
@@ -61,7 +46,7 @@ def expert_episodes(env: gym.Env, episodes: int, seed: int = 0, progress: bool =
     for k in iterator:
         obs, info = env.reset(seed=seed + k)
         expert.reset()
-        episode = ExpertEpisode(seed + k, obs, info)
+        episode = RecordedEpisode(seed + k, obs, info)
         done = False
         while not done:
             action = expert(obs)
@@ -146,7 +131,8 @@ def record_minari(env_id: str, episodes: int, dataset_id: str | None = None, see
                   code_permalink: str | None = None) -> dict:
     """Run ``episodes`` expert episodes of ``env_id`` (env seeds ``seed, seed + 1, ...``) and write them as the
     Minari dataset ``dataset_id`` (default :func:`agents.datasets.default_dataset_id`) under
-    :func:`agents.datasets.datasets_root` ``(root)``; needs ``pip install 'suture_gym[data]'``.
+    :func:`agents.datasets.datasets_root` ``(root)`` with :func:`agents.datasets.write_minari`; needs
+    ``pip install 'suture_gym[data]'``.
 
     Each episode holds Minari's ``observations`` (``T + 1``: the reset's, then each step's), ``actions (T, 6)``,
     ``rewards``, ``terminations``, ``truncations``, the infos of :data:`agents.datasets.INFO_KEYS` (``T + 1``),
@@ -161,41 +147,23 @@ def record_minari(env_id: str, episodes: int, dataset_id: str | None = None, see
     Returns:
         ``{episodes, steps, success_rate, dataset_id, root}``.
     """
-    import minari
-    from minari.data_collector import EpisodeBuffer
+    import minari  # noqa: F401  (fails before the episodes are run when Minari is missing)
 
     import suture_gym  # noqa: F401  (registers the ids)
-    from agents.datasets import INFO_KEYS, default_dataset_id, minari_root
+    from agents.datasets import INFO_KEYS, default_dataset_id, write_minari
 
     dataset_id = dataset_id or default_dataset_id(env_id)
     env = gym.make(env_id, **(env_kwargs or {}))
-    buffers, success, steps = [], [], 0
-    for episode in expert_episodes(env, episodes, seed, progress):
-        infos = [episode.reset_info, *episode.infos]
-        buffers.append(EpisodeBuffer(
-            id=len(buffers), seed=episode.seed, observations=_stack([episode.reset_obs, *episode.observations]),
-            actions=np.asarray(episode.actions, dtype=np.float32), rewards=episode.rewards,
-            terminations=episode.terminated, truncations=episode.truncated,
-            infos={key: np.asarray([i.get(key, default) for i in infos], dtype=dtype)
-                   for key, (default, dtype) in INFO_KEYS.items()}))
-        success.append(bool(episode.infos[-1].get("is_success", False)))
-        steps += len(episode.actions)
-    with minari_root(root) as folder:
-        minari.create_dataset_from_buffers(
-            dataset_id, buffers, env=env, eval_env=env, algorithm_name="agents.expert.ExpertPolicy",
-            author=author, author_email=author_email, code_permalink=code_permalink,
-            description=f"Scripted-expert (suture_gym agents.expert.ExpertPolicy) demonstrations of {env_id}, env "
-                        f"seeds {seed}-{seed + episodes - 1}; per-step infos {sorted(INFO_KEYS)}")
+    recorded = list(expert_episodes(env, episodes, seed, progress))
+    success = [bool(e.infos[-1].get("is_success", False)) for e in recorded]
+    folder = write_minari(
+        dataset_id, recorded, env, root=root, algorithm_name="agents.expert.ExpertPolicy", author=author,
+        author_email=author_email, code_permalink=code_permalink,
+        description=f"Scripted-expert (suture_gym agents.expert.ExpertPolicy) demonstrations of {env_id}, env "
+                    f"seeds {seed}-{seed + episodes - 1}; per-step infos {sorted(INFO_KEYS)}")
     env.close()
-    return {"episodes": episodes, "steps": steps, "success_rate": float(np.mean(success)), "dataset_id": dataset_id,
-            "root": str(folder)}
-
-
-def _stack(observations: list):
-    """``(T + 1, D) float32`` of flat observations, or a dict of such arrays for Dict observations."""
-    if isinstance(observations[0], dict):
-        return {key: np.asarray([o[key] for o in observations], dtype=np.float32) for key in observations[0]}
-    return np.asarray(observations, dtype=np.float32)
+    return {"episodes": episodes, "steps": sum(len(e.actions) for e in recorded),
+            "success_rate": float(np.mean(success)), "dataset_id": dataset_id, "root": str(folder)}
 
 
 def main(argv: list[str] | None = None) -> int:

@@ -26,6 +26,12 @@ episode (``terminated``), ``step`` raises RuntimeError until ``reset``; Gymnasiu
 ``TimeLimit`` does not stop a step after its own truncation. ``render`` before the first ``reset`` raises
 RuntimeError too.
 
+Rendering: ``render_mode="rgb_array"``: :meth:`~SutureEnv.render` returns an image from the offline renderer
+(:mod:`suture_gym.render`). ``render_mode="human"``: a live 3D view in the browser
+(:class:`suture_gym.viewer.scene.LiveView`, viser, the ``viewer`` extra), served on ``render.viewer_host`` and
+``render.viewer_port`` from the first ``reset`` on and updated by every ``reset`` and ``step`` (at most
+``render.viewer_fps`` frames per second; the env never waits for a browser); ``close`` stops it.
+
 ``info`` at every step: ``is_success``, ``punctured``, ``tip_force`` (N), ``haptic_wrench`` (``(6,) float64``
 ``[N, N m]``: the reaction the tissue and thread exert on the needle, about the grip point, at the step's last
 substep; a haptic device renders its opposite; zeros if not finite), ``wound_gap`` (m, 0 without a
@@ -92,11 +98,11 @@ class SutureEnv(gym.Env):
             default the class's :attr:`TASK`.
         config: None (the task's defaults), an :class:`~suture_gym.envs.config.EnvConfig`, a nested mapping of
             overrides or the path of a YAML file of overrides (``configs/envs/*.yaml``).
-        render_mode: None or ``"rgb_array"``.
+        render_mode: None, ``"rgb_array"`` (images) or ``"human"`` (live view in the browser, needs viser).
         action_mode: shortcut overriding ``config.action.mode`` (``"wrench"`` or ``"pose_delta"``).
     """
 
-    metadata = {"render_modes": ["rgb_array"], "render_fps": 50}
+    metadata = {"render_modes": ["rgb_array", "human"], "render_fps": 50}
     #: Goal-conditioned variant: a miss never ends its episodes (the relabelled goals may still be reachable).
     _GOAL_CONDITIONED = False
     #: Task of an env class made for one id (:func:`~suture_gym.envs.docs.env_class`), the default ``task``.
@@ -110,6 +116,10 @@ class SutureEnv(gym.Env):
             cfg = apply_overrides(cfg, {"action": {"mode": action_mode}})
         if render_mode is not None and render_mode not in self.metadata["render_modes"]:
             raise ValueError(f"render_mode must be None or one of {self.metadata['render_modes']}, got {render_mode!r}")
+        if render_mode == "human":
+            from suture_gym.viewer import require_viser
+
+            require_viser()  # fail here, naming the extra to install, rather than at the first reset
         self.config: EnvConfig = cfg
         self.render_mode = render_mode
         self.sim = Simulation(cfg)
@@ -131,6 +141,9 @@ class SutureEnv(gym.Env):
         self._last_obs = None
         self._ended = False
         self._renderer = None
+        self._live = None
+        #: (seed, steps, return, last info, ended) of the episode, for the live view (``render_mode="human"``).
+        self._live_episode: tuple = (None, 0, 0.0, {}, False)
 
     # ------------------------------------------------------------------------------------------------------
     # Gymnasium API
@@ -167,6 +180,9 @@ class SutureEnv(gym.Env):
         info = self._info(sim_obs, obs, None, diverged=False)
         info["params"] = params.to_dict()
         info["phase"] = phase
+        if self.render_mode == "human":
+            self._live_episode = (seed, 0, 0.0, info, False)
+            self._show_live(force=True)
         return obs, info
 
     def step(self, action):
@@ -201,26 +217,66 @@ class SutureEnv(gym.Env):
         terminated = outcome.success or outcome.failed
         self._ended = terminated
         info = self._info(sim_obs, obs, outcome, diverged)
-        return obs, self._reward(obs, outcome, info), bool(terminated), False, info
+        reward = self._reward(obs, outcome, info)
+        if self.render_mode == "human":
+            seed, steps, total, _, _ = self._live_episode
+            self._live_episode = (seed, steps + 1, total + reward, info, terminated)
+            self._show_live(force=terminated)
+        return obs, reward, bool(terminated), False, info
 
     def render(self):
-        """``(height, width, 3) uint8`` image of the scene (``render_mode="rgb_array"``), else None."""
-        if self.render_mode != "rgb_array":
+        """``render_mode="rgb_array"``: a ``(height, width, 3) uint8`` image of the scene. ``"human"``: push the
+        current state to the live view now (``reset`` and ``step`` do so already); returns None. No render mode:
+        None."""
+        if self.render_mode is None:
             return None
         if self._last_obs is None:
             raise RuntimeError("call reset() before render()")
+        if self.render_mode == "human":
+            self._show_live(force=True)
+            return None
         from suture_gym.render import SceneRenderer
 
         if self._renderer is None:
             r = self.config.render
             self._renderer = SceneRenderer(r.width, r.height, ssaa=r.ssaa)
             self._renderer.fit_camera(self.sim.view_points(), direction=(1.0, -0.35, 0.9), margin=1.02)
-        caption = f"{self.config.task.replace('_', ' ')}  t={self.sim.time:.2f}s"
-        return self._renderer.render(self.sim.render_frame(self._markers(), caption))
+        return self._renderer.render(self.view_frame())
 
     def close(self) -> None:
         self._renderer = None
+        if self._live is not None:
+            self._live.close()
+            self._live = None
         super().close()
+
+    def view_frame(self):
+        """The current state as a :class:`~suture_gym.render.RenderFrame` (tissue surface, needle, thread, the
+        planned entry and exit markers, tip force and a caption), what both the offline renderer and the live
+        view draw."""
+        caption = f"{self.config.task.replace('_', ' ')}  t={self.sim.time:.2f}s"
+        return self.sim.render_frame(self._markers(), caption)
+
+    def planned_arc_points(self, samples: int = 48) -> list[np.ndarray]:
+        """The planned stitches' arcs from entry to exit: one ``(samples, 3)`` polyline per stitch, m."""
+        if isinstance(samples, bool) or not isinstance(samples, int) or samples < 2:
+            raise ValueError(f"samples must be an integer >= 2, got {samples!r}")
+        return [np.array([arc.point(a) for a in np.linspace(arc.entry_angle, arc.exit_angle, samples)])
+                for arc in self.sim.arcs]
+
+    def _show_live(self, force: bool) -> None:
+        """Push the episode to the live view (``render_mode="human"``), starting its server on first use."""
+        from suture_gym.viewer.scene import EpisodeStatus, LiveView
+
+        r = self.config.render
+        if self._live is None:
+            self._live = LiveView(r.viewer_host, r.viewer_port, r.viewer_fps, self.config.action.max_force,
+                                  label=f"suture_gym {self.spec.id if self.spec else self.config.task}")
+        seed, steps, total, info, ended = self._live_episode
+        state = ("success" if info.get("is_success") else "ended") if ended else "running"
+        status = EpisodeStatus(seed, steps, self.sim.time, total, state, "env")
+        self._live.show(self.view_frame(), self.planned_arc_points(), self.sim.grip_pose()[0], info, status,
+                        force=force)
 
     def action_toward(self, target_pos: np.ndarray, target_quat: np.ndarray) -> np.ndarray:
         """``(6,) float32`` action in [-1, 1] that moves the holder toward the grip pose ``target_pos`` (3,) m,

@@ -436,18 +436,28 @@ class ObservationConfig(_Section):
 
 @dataclass(frozen=True)
 class RenderConfig(_Section):
-    """``render_mode="rgb_array"`` image size and supersampling."""
+    """``render_mode="rgb_array"`` image size and supersampling; ``render_mode="human"`` live view's server and
+    frame rate (:class:`suture_gym.viewer.scene.LiveView`)."""
 
     SECTION: ClassVar[str] = "render"
 
     width: int = 320  # px (even, for video encoding)
     height: int = 240  # px (even)
     ssaa: int = 2  # supersampling factor
+    viewer_host: str = "127.0.0.1"  # interface the live view serves on ("0.0.0.0": every interface)
+    viewer_port: int = 8080  # TCP port (0: any free port; a taken one makes viser try the next)
+    viewer_fps: float = 30.0  # most frames pushed to the browser per wall-clock second
 
     def validate(self, path: str) -> None:
         _count(f"{path}.width", self.width, 2)
         _count(f"{path}.height", self.height, 2)
         _count(f"{path}.ssaa", self.ssaa, 1)
+        if not isinstance(self.viewer_host, str) or not self.viewer_host:
+            _fail(f"{path}.viewer_host", f"must be a host name or address, got {self.viewer_host!r}")
+        _count(f"{path}.viewer_port", self.viewer_port, 0)
+        if self.viewer_port > 65535:
+            _fail(f"{path}.viewer_port", f"must be a TCP port <= 65535, got {self.viewer_port!r}")
+        _real(f"{path}.viewer_fps", self.viewer_fps, low=0.0, strict_low=True)
 
 
 @dataclass(frozen=True)

@@ -113,7 +113,8 @@ def _argument_lines(task: type[Task]) -> list[str]:
         "* ``config``: None (the task's defaults), an ``EnvConfig``, a nested mapping of overrides or the path of "
         "a YAML file of them (``configs/envs/*.yaml``); unknown keys and bad values raise ValueError naming the "
         f"dotted key. The task's defaults: ``default_config({task.NAME!r})``.",
-        "* ``render_mode``: None or ``'rgb_array'``.",
+        "* ``render_mode``: None, ``'rgb_array'`` (images) or ``'human'`` (a live 3D view in the browser, viser; "
+        "``render.viewer_host``/``viewer_port``).",
         "* ``action_mode``: ``'wrench'`` or ``'pose_delta'``, overriding ``action.mode``.",
     ]
 

@@ -292,6 +292,9 @@ class SutureVectorEnv(gym.vector.VectorEnv):
             workers = default_workers(num_envs)
         if isinstance(workers, bool) or not isinstance(workers, int) or not 0 <= workers <= num_envs:
             raise ValueError(f"workers must be an integer from 0 to num_envs = {num_envs}, got {workers!r}")
+        if render_mode == "human":
+            raise ValueError("render_mode='human' (a live view in the browser) is for one env, gym.make(id, "
+                             "render_mode='human'); the vector env renders None or 'rgb_array'")
         make_args = (task, goal_conditioned, config, render_mode, action_mode)
         # One env here either way: the spaces and metadata come from it (and with workers, it checks the
         # arguments before any process starts).
