@@ -222,8 +222,9 @@ BUILTIN_VERSION_HISTORY = (
     "the wrong Poisson's ratio and softness); every force x100: puncture 0.5 N, tear 10 N, actions up to 5 N "
     "and 0.02 N m per axis, holder 2 kg; the insertion force model on (exit peak 0.25 N, cutting 0.1 N, a 1 mm "
     "tip patch); thread nodes in a path keep their own inertia along it. Also (issue 19): actions outside the "
-    "box are clipped to it, a divergence ends the episode as a failure (terminated, failure penalty), and a step "
-    "after the env ended the episode raises.",
+    "box are clipped to it, a divergence ends the episode as a failure (terminated, failure penalty), a step "
+    "after the env ended the episode raises, and the tissue's quasi-Newton solve iterates on after a step of "
+    "over a quarter cell until converged (a full-action dent at the pad's edge diverged).",
     "v0: 3 kPa XPBD tissue and millinewton forces (puncture 5 mN, actions up to 0.05 N and 2e-4 N m).",
 )
 
