@@ -19,6 +19,7 @@ from __future__ import annotations
 
 import math
 import time
+from pathlib import Path
 
 import gymnasium as gym
 import numpy as np
@@ -34,6 +35,8 @@ WARMUP_STEPS = 50
 SCRIPTED_TURN_RATE = 2.0
 TIMED_STEPS = 600
 VECTOR_ENVS = 4
+#: The shipped env configs (``<task>_randomized.yaml`` for the phase-reset benchmark).
+CONFIGS = Path(__file__).resolve().parents[2] / "configs" / "envs"
 
 
 def _random_run(env: gym.Env, steps: int, seed: int) -> tuple[np.ndarray, np.ndarray, float]:
@@ -176,6 +179,49 @@ def check_suture_throw_scripted_thread() -> CheckResult:
     measured = run["thread_through_m"] if run["is_success"] and not run["diverged"] else -math.inf
     return CheckResult("env_suture_throw_scripted_thread", measured, target, 0.0, "m", ">=",
                        _scripted_settings(env_id, rate, speed), run)
+
+
+#: Resets timed per start phase once its start is cached (the median is reported).
+PHASE_RESETS = 3
+
+
+def _reset_seconds(env: gym.Env, phase: str, seed: int) -> float:
+    start = time.perf_counter()
+    env.reset(seed=seed, options={"phase": phase})
+    return time.perf_counter() - start
+
+
+@benchmark("phase_reset")
+def bench_phase_reset() -> dict:
+    """Seconds to reset into each start phase of each task (``reset(options={"phase": ...})``): the first reset
+    of a process (``first_s``: the scripted approach simulated on the nominal parameters, numba already
+    compiled), then warm, the median of :data:`PHASE_RESETS` resets of a fresh env of the same config
+    (``warm_s``, the cached start) and of the task's randomised config (``warm_randomized_s``: each episode's
+    parameters differ, so the start is carried over and settled; its first reset, which simulates, untimed)."""
+    from suture_gym.envs.simulation import PHASE_STARTS
+
+    phases = []
+    for env_id in ENV_IDS:
+        task = gym.make(env_id).unwrapped
+        randomized = CONFIGS / f"{task.config.task}_randomized.yaml"
+        for phase in task.task_cls.PHASES:
+            PHASE_STARTS.clear()
+            entry = {"env_id": env_id, "phase": phase,
+                     "first_s": _reset_seconds(gym.make(env_id), phase, seed=0)}
+            warm = gym.make(env_id)
+            entry["warm_s"] = float(np.median([_reset_seconds(warm, phase, seed=k) for k in range(PHASE_RESETS)]))
+            if randomized.is_file():
+                env = gym.make(env_id, config=randomized)
+                _reset_seconds(env, phase, seed=0)
+                entry["warm_randomized_s"] = float(np.median(
+                    [_reset_seconds(env, phase, seed=k) for k in range(1, PHASE_RESETS + 1)]))
+            phases.append(entry)
+    return {
+        "phases": phases,
+        "warm_s_max": max(max(e["warm_s"], e.get("warm_randomized_s", 0.0)) for e in phases),
+        "workload": "reset(options={'phase': p}); warm: fresh env of the same config after the first, and the "
+                    "randomised config's episodes (new parameters each)",
+    }
 
 
 @benchmark("vector_env")
