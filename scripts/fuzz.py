@@ -15,10 +15,24 @@ action strategy:
 * ``tiny``: uniform in ``[-1e-6, 1e-6]^6``;
 * ``extreme``: random signs times magnitudes from 1 to 1e300 (outside the box: the env clips them).
 
-Counted: exceptions from ``reset`` or ``step`` (the first few with their case and traceback), non-finite
+Counted: exceptions from ``reset`` or ``step`` (the first few with their traceback), non-finite
 observations, rewards and ``info`` numbers, contract violations (an observation outside its space, a reward that
 is not the exact sum of its terms, a step after ``terminated`` that the env did not refuse), divergences and how
-episodes ended. Exits 1 if there was any exception, non-finite value or violation, else 0.
+episodes ended. Exits 1 if there was any exception, non-finite value, violation or divergence (every action acts
+in the box, and in-box actions must never diverge), else 0.
+
+Every event (exception, non-finite value, violation, divergence) is listed in ``events`` with its reproducer:
+the env id, config file, action mode, strategy, the episode's seed and the step (1-based within the episode).
+Each episode's env is reset with that seed and its actions are drawn from ``np.random.default_rng([seed, 1])``,
+so one event replays alone::
+
+    python scripts/fuzz.py --replay '{"id": "SutureGym/NeedleInsert-v1", "config": "needle_insert.yaml",
+        "action_mode": "wrench", "strategy": "random", "seed": 123, "step": 45}'
+
+(any event object of the JSON works, as a string or ``@file.json``); it plays the episode up to that step and
+prints what happened there as JSON, exiting 1 if the event happened again. ``--only`` restricts a run to the
+cases whose name (``"<id> <action mode> <config>"``) contains each given string, keeping each case's random
+stream, so a long hunt on one case finds what the full run would.
 """
 
 from __future__ import annotations
@@ -29,6 +43,7 @@ import math
 import sys
 import time
 import traceback
+from dataclasses import dataclass
 from pathlib import Path
 
 from _common import ROOT, configure
@@ -45,13 +60,18 @@ from suture_gym.envs.config import ACTION_MODES  # noqa: E402
 
 #: Action strategies, one per episode (module docstring).
 STRATEGIES = ("random", "corner", "bang_bang", "tiny", "extreme")
-#: Exceptions reported in full (the rest are counted).
+#: Exceptions reported with their traceback (the rest are counted, and listed in ``events``).
 EXCEPTION_SAMPLES = 10
+#: Events listed with their reproducers (the rest are counted).
+EVENT_SAMPLES = 1000
 #: The ``info`` entries that must be finite numbers.
 FINITE_INFO = ("tip_force", "haptic_wrench", "wound_gap", "cost")
 
 
-def cases(config_dir: Path = ROOT / "configs" / "envs") -> list[dict]:
+CONFIG_DIR = ROOT / "configs" / "envs"
+
+
+def cases(config_dir: Path = CONFIG_DIR) -> list[dict]:
     """Every (env id, action mode, shipped config of the id's task), in a fixed order."""
     configs: dict[str, list[Path]] = {}
     for path in sorted(config_dir.glob("*.yaml")):
@@ -116,7 +136,8 @@ def _contract_violations(env: gym.Env, obs, reward: float, info: dict) -> list[s
 
 
 class Tally:
-    """Counts of one fuzz run, overall and in each case's record (``{"case": name, "steps": ..., ...}``)."""
+    """Counts of one fuzz run, overall and in each case's record (``{"case": name, "steps": ..., ...}``), and the
+    events with their reproducers."""
 
     def __init__(self) -> None:
         self.totals = dict(steps=0, episodes=0, exceptions=0, non_finite_obs=0, non_finite_reward=0,
@@ -124,28 +145,48 @@ class Tally:
         self.ends: dict[str, int] = {}
         self.strategies = dict.fromkeys(STRATEGIES, 0)
         self.exception_samples: list[dict] = []
-        self.violation_samples: list[dict] = []
+        self.events: list[dict] = []
         self.cases: list[dict] = []
 
     def add(self, key: str, record: dict, count: int = 1) -> None:
         self.totals[key] += count
         record[key] = record.get(key, 0) + count
 
-    def exception(self, record: dict, where: str, step: int, error: BaseException) -> None:
-        self.add("exceptions", record)
-        if len(self.exception_samples) < EXCEPTION_SAMPLES:
-            self.exception_samples.append({
-                "case": record["case"], "where": where, "step": step, "type": type(error).__name__,
-                "message": str(error)[:500], "traceback": traceback.format_exc(limit=-4)[-2000:],
-            })
+    def event(self, kind: str, record: dict, episode: Episode, step: int, **details) -> None:
+        """Count an event of ``kind`` (a key of :attr:`totals`) at ``step`` (1-based; 0 for ``make`` and
+        ``reset``) of ``episode`` and list it with its reproducer."""
+        self.add(kind, record)
+        if len(self.events) < EVENT_SAMPLES:
+            self.events.append({"kind": kind, **episode.reproducer(), "step": step, **details})
 
-    def violation(self, record: dict, step: int, what: str) -> None:
-        self.add("violations", record)
-        if len(self.violation_samples) < EXCEPTION_SAMPLES:
-            self.violation_samples.append({"case": record["case"], "step": step, "what": what})
+    def exception(self, record: dict, episode: Episode, where: str, step: int, error: BaseException) -> None:
+        details = {"where": where, "type": type(error).__name__, "message": str(error)[:500]}
+        self.event("exceptions", record, episode, step, **details)
+        if len(self.exception_samples) < EXCEPTION_SAMPLES:
+            self.exception_samples.append({**episode.reproducer(), "step": step, **details,
+                                           "traceback": traceback.format_exc(limit=-4)[-2000:]})
 
     def end(self, reason: str) -> None:
         self.ends[reason] = self.ends.get(reason, 0) + 1
+
+
+@dataclass(frozen=True)
+class Episode:
+    """One fuzz episode: the env reset with ``seed`` and the actions of ``strategy`` drawn from
+    ``np.random.default_rng([seed, 1])``; with the case, all it takes to replay it (:func:`replay`). ``seed`` is
+    None (and ``strategy`` empty) for the env's construction, before any episode."""
+
+    case: dict
+    strategy: str
+    seed: int | None
+
+    def actions(self) -> ActionStream:
+        return ActionStream(self.strategy, np.random.default_rng([self.seed, 1]))
+
+    def reproducer(self) -> dict:
+        c = self.case
+        return {"id": c["id"], "config": c["config"], "action_mode": c["action_mode"], "strategy": self.strategy,
+                "seed": self.seed}
 
 
 def _name(case: dict) -> str:
@@ -160,55 +201,69 @@ def _end_reason(info: dict, terminated: bool) -> str:
     return "terminated" if terminated else "truncated"
 
 
+def _make(case: dict) -> gym.Env:
+    return gym.make(case["id"], config=case["path"], action_mode=case["action_mode"])
+
+
+def _check_step(env: gym.Env, obs, reward: float, info: dict) -> list[tuple[str, dict]]:
+    """The events of one step: ``(kind, details)`` for each non-finite value, violation and divergence."""
+    found = []
+    if not _finite(obs):
+        found.append(("non_finite_obs", {}))
+    if not math.isfinite(reward):
+        found.append(("non_finite_reward", {"reward": repr(reward)}))
+    bad = [key for key in FINITE_INFO if not _finite(info[key])]
+    if bad:
+        found.append(("non_finite_info", {"keys": bad}))
+    found.extend(("violations", {"what": what}) for what in _contract_violations(env, obs, reward, info))
+    if info["diverged"]:
+        found.append(("divergences", {}))
+    return found
+
+
 def run_case(case: dict, steps: int, max_episode_steps: int, rng: np.random.Generator, tally: Tally,
              bar: tqdm) -> None:
-    """Play ``steps`` env steps of ``case``, counting into ``tally`` (and its per-case record)."""
+    """Play ``steps`` env steps of ``case``, counting into ``tally`` (and its per-case record); ``rng`` draws
+    each episode's seed and strategy."""
     record = {"case": _name(case), "steps": 0, "episodes": 0}
     tally.cases.append(record)
     try:
-        env = gym.make(case["id"], config=case["path"], action_mode=case["action_mode"])
+        env = _make(case)
     except Exception as error:
-        tally.exception(record, "make", 0, error)
+        tally.exception(record, Episode(case, "", None), "make", 0, error)
         bar.update(steps)
         return
     done_steps = 0
     while done_steps < steps:
+        episode = Episode(case, STRATEGIES[int(rng.integers(len(STRATEGIES)))], int(rng.integers(2**31)))
         try:
-            env.reset(seed=int(rng.integers(2**31)))
+            env.reset(seed=episode.seed)
         except Exception as error:
-            tally.exception(record, "reset", done_steps, error)
+            tally.exception(record, episode, "reset", 0, error)
             bar.update(steps - done_steps)
             break
-        strategy = STRATEGIES[int(rng.integers(len(STRATEGIES)))]
-        actions = ActionStream(strategy, rng)
-        tally.strategies[strategy] += 1
+        actions = episode.actions()
+        tally.strategies[episode.strategy] += 1
         tally.add("episodes", record)
         length = min(max_episode_steps, steps - done_steps)
-        for _ in range(length):
+        for step in range(1, length + 1):
             done_steps += 1
             tally.add("steps", record)
             bar.update(1)
             try:
                 obs, reward, terminated, truncated, info = env.step(actions())
             except Exception as error:
-                tally.exception(record, f"step ({strategy})", done_steps, error)
+                tally.exception(record, episode, "step", step, error)
                 break
-            if not _finite(obs):
-                tally.add("non_finite_obs", record)
-            if not math.isfinite(reward):
-                tally.add("non_finite_reward", record)
-            if not all(_finite(info[key]) for key in FINITE_INFO):
-                tally.add("non_finite_info", record)
-            for what in _contract_violations(env, obs, reward, info):
-                tally.violation(record, done_steps, what)
-            if info["diverged"]:
-                tally.add("divergences", record)
+            for kind, details in _check_step(env, obs, reward, info):
+                tally.event(kind, record, episode, step, **details)
             if terminated or truncated:
                 tally.end(_end_reason(info, terminated))
                 if terminated:
                     try:
                         env.step(actions())
-                        tally.violation(record, done_steps, "a step after terminated was not refused")
+                        tally.event("violations", record, episode, step + 1,
+                                    what="a step after terminated was not refused")
                     except RuntimeError:
                         pass
                 break
@@ -217,14 +272,26 @@ def run_case(case: dict, steps: int, max_episode_steps: int, rng: np.random.Gene
     env.close()
 
 
-def fuzz(steps: int, seed: int = 0, max_episode_steps: int = 200, progress: bool = True) -> dict:
-    """Fuzz every case for a shared budget of ``steps`` env steps; returns the summary (module docstring)."""
-    all_cases = cases()
-    share = [steps // len(all_cases) + (1 if k < steps % len(all_cases) else 0) for k in range(len(all_cases))]
+def select(all_cases: list[dict], only: list[str] | None) -> list[tuple[int, dict]]:
+    """``(index in all_cases, case)`` of the cases whose name contains every string of ``only`` (all if None);
+    ValueError if none does."""
+    chosen = [(k, c) for k, c in enumerate(all_cases) if not only or all(o in _name(c) for o in only)]
+    if not chosen:
+        raise ValueError(f"no case matches {only}; cases: {[_name(c) for c in all_cases]}")
+    return chosen
+
+
+def fuzz(steps: int, seed: int = 0, max_episode_steps: int = 200, progress: bool = True,
+         only: list[str] | None = None) -> dict:
+    """Fuzz every case (or those :func:`select` picks with ``only``) for a shared budget of ``steps`` env steps;
+    returns the summary (module docstring). Case ``k`` of :func:`cases` draws from
+    ``np.random.default_rng([seed, k])`` whatever ``only`` picks."""
+    chosen = select(cases(), only)
+    share = [steps // len(chosen) + (1 if k < steps % len(chosen) else 0) for k in range(len(chosen))]
     tally = Tally()
     start = time.perf_counter()
     with tqdm(total=steps, desc="fuzz", unit="step", file=sys.stderr, disable=None if progress else True) as bar:
-        for k, (case, budget) in enumerate(zip(all_cases, share, strict=True)):
+        for (k, case), budget in zip(chosen, share, strict=True):
             if budget:
                 bar.set_postfix_str(_name(case), refresh=False)
                 run_case(case, budget, max_episode_steps, np.random.default_rng([seed, k]), tally, bar)
@@ -232,21 +299,76 @@ def fuzz(steps: int, seed: int = 0, max_episode_steps: int = 200, progress: bool
         "seed": seed,
         "steps_budget": steps,
         "max_episode_steps": max_episode_steps,
-        "cases": len(all_cases),
+        "only": only,
+        "cases": len(chosen),
         **tally.totals,
         "seconds": round(time.perf_counter() - start, 1),
         "episode_ends": dict(sorted(tally.ends.items())),
         "episodes_per_strategy": tally.strategies,
+        "events": tally.events,
+        "events_left_out": sum(tally.totals[k] for k in FAILURES) - len(tally.events),
         "exception_samples": tally.exception_samples,
-        "violation_samples": tally.violation_samples,
         "per_case": tally.cases,
     }
 
 
+def replay(event: dict, config_dir: Path = CONFIG_DIR) -> dict:
+    """Play the episode of ``event`` (a reproducer from a run's ``events``: ``id``, ``config`` (a file of
+    ``config_dir`` or a path), ``action_mode``, ``strategy``, ``seed``, ``step``) up to its step and return what
+    happened there: ``{**reproducer, "events": [{kind, ...details}], "reproduced": bool}``, ``reproduced`` when
+    an event of the same ``kind`` (if the event names one) happened at that step."""
+    missing = [k for k in ("id", "config", "action_mode", "strategy", "seed", "step") if k not in event]
+    if missing:
+        raise ValueError(f"the event lacks {missing} (it needs id, config, action_mode, strategy, seed, step)")
+    if event["step"] > 0 and (event["strategy"] not in STRATEGIES or event["seed"] is None):
+        raise ValueError(f"a step past 0 needs a strategy of {STRATEGIES} and a seed, got strategy "
+                         f"{event['strategy']!r} and seed {event['seed']!r}")
+    path = Path(event["config"])
+    case = {"id": event["id"], "action_mode": event["action_mode"], "config": event["config"],
+            "path": path if path.is_file() else config_dir / path}
+    episode = Episode(case, event["strategy"], None if event["seed"] is None else int(event["seed"]))
+    step = int(event["step"])
+    found: list[dict] = []
+    try:
+        env = _make(case)
+        if episode.seed is not None:
+            env.reset(seed=episode.seed)
+            actions = episode.actions()
+        for k in range(1, step + 1):
+            obs, reward, terminated, truncated, info = env.step(actions())
+            if k == step:
+                found = [{"kind": kind, **details} for kind, details in _check_step(env, obs, reward, info)]
+                found.append({"kind": "end", "terminated": terminated, "truncated": truncated,
+                              "reason": _end_reason(info, terminated) if terminated or truncated else None})
+            elif terminated or truncated:
+                found = [{"kind": "ended_before", "step": k, "reason": _end_reason(info, terminated)}]
+                break
+    except Exception as error:
+        found = [{"kind": "exceptions", "type": type(error).__name__, "message": str(error)[:500]}]
+    kinds = {f["kind"] for f in found}
+    reproduced = event["kind"] in kinds if "kind" in event else bool(kinds & set(FAILURES))
+    return {**episode.reproducer(), "step": step, "events": found, "reproduced": reproduced}
+
+
+#: The counts of which any makes a run fail.
+FAILURES = ("exceptions", "non_finite_obs", "non_finite_reward", "non_finite_info", "violations", "divergences")
+
+
 def failed(summary: dict) -> bool:
-    """Whether the run found a bug: an exception, a non-finite value or a contract violation."""
-    keys = ("exceptions", "non_finite_obs", "non_finite_reward", "non_finite_info", "violations")
-    return any(summary[k] for k in keys)
+    """Whether the run found a bug: an exception, a non-finite value, a contract violation or a divergence."""
+    return any(summary[k] for k in FAILURES)
+
+
+def _load_event(text: str) -> dict:
+    if text.startswith("@"):
+        text = Path(text[1:]).read_text()
+    try:
+        event = json.loads(text)
+    except json.JSONDecodeError as error:
+        raise ValueError(f"--replay takes an event as JSON (or @file.json): {error}") from None
+    if not isinstance(event, dict):
+        raise ValueError(f"--replay takes one event object, got {type(event).__name__}")
+    return event
 
 
 def main(argv: list[str] | None = None) -> int:
@@ -254,23 +376,35 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--steps", type=int, default=5000, help="env steps in all, shared by the cases")
     parser.add_argument("--seed", type=int, default=0)
     parser.add_argument("--max-episode-steps", type=int, default=200, help="steps before the fuzzer resets")
+    parser.add_argument("--only", nargs="+", metavar="TEXT", help="only the cases whose name contains each TEXT")
+    parser.add_argument("--replay", metavar="EVENT", help="replay one event (JSON or @file.json) and exit")
     parser.add_argument("--json", action="store_true", help="print the summary as JSON")
     parser.add_argument("--no-progress", action="store_true", help="no progress bar on stderr")
     args = parser.parse_args(argv)
+    if args.replay is not None:
+        try:
+            result = replay(_load_event(args.replay))
+        except ValueError as error:
+            parser.error(str(error))
+        print(json.dumps(result, indent=2))
+        return 1 if result["reproduced"] else 0
     if args.steps < 1:
         parser.error(f"--steps must be positive, got {args.steps}")
     if args.max_episode_steps < 1:
         parser.error(f"--max-episode-steps must be positive, got {args.max_episode_steps}")
-    summary = fuzz(args.steps, args.seed, args.max_episode_steps, progress=not args.no_progress)
+    try:
+        select(cases(), args.only)
+    except ValueError as error:
+        parser.error(str(error))
+    summary = fuzz(args.steps, args.seed, args.max_episode_steps, progress=not args.no_progress, only=args.only)
     if args.json:
         print(json.dumps(summary, indent=2))
     else:
-        for key in ("cases", "steps", "episodes", "exceptions", "non_finite_obs", "non_finite_reward",
-                    "non_finite_info", "violations", "divergences", "seconds"):
+        for key in ("cases", "steps", "episodes", *FAILURES, "seconds"):
             print(f"{key:>18s}  {summary[key]}")
         print(f"{'episode_ends':>18s}  {summary['episode_ends']}")
-        for sample in summary["exception_samples"] + summary["violation_samples"]:
-            print(json.dumps(sample))
+        for event in summary["events"]:
+            print(json.dumps(event))
     return 1 if failed(summary) else 0
 
 

@@ -339,6 +339,73 @@ def test_start_phases(task, config, phase, check):
     assert math.isfinite(reward)
 
 
+def _state_arrays(state) -> list:
+    """Every array and number of a simulator ``State`` (tissue, needle, thread, coupling, readings), in a fixed
+    order, for comparing two states bit for bit."""
+    from dataclasses import fields, is_dataclass
+
+    out = []
+    for part in (state.tissue, state.needle, state.suture, state.coupling, state.suture_tension,
+                 state.needle_reaction, state.time):
+        values = [getattr(part, f.name) for f in fields(part)] if is_dataclass(part) else [part]
+        out += [np.asarray(v) for v in values]
+    return out
+
+
+def test_a_cached_phase_start_is_the_simulated_one(monkeypatch):
+    from suture_gym.envs.randomization import nominal_params
+    from suture_gym.envs.simulation import PHASE_STARTS, Simulation
+    from suture_gym.tasks import NeedleInsert
+
+    PHASE_STARTS.clear()
+    nominal = {"randomization": {"enabled": False}}
+    first = SutureEnv("needle_insert", config=nominal)
+    obs_first, _ = first.reset(seed=0, options={"phase": "inserted"})  # simulates the approach, once
+    simulated = Simulation(first.config)
+    simulated.simulate_phase(nominal_params(first.config), "inserted")
+
+    def not_again(sim, phase):
+        raise AssertionError("the cached start was simulated again")
+
+    monkeypatch.setattr(NeedleInsert, "start_phase", classmethod(not_again))
+    second = SutureEnv("needle_insert", config=nominal)  # another env of the same config: the cached start
+    obs, info = second.reset(seed=0, options={"phase": "inserted"})
+    assert info["punctured"] and np.array_equal(obs, obs_first)
+    for mine, theirs in zip(_state_arrays(second.sim.state), _state_arrays(simulated.state), strict=True):
+        np.testing.assert_array_equal(mine, theirs)
+    entries, exits = simulated.observables().new_entries, simulated.observables().new_exits
+    assert len(entries) == 1 and np.array_equal(second.task.state.entry_point, entries[0]) and len(exits) == 0
+    action = np.full(6, 0.3, np.float32)
+    for _ in range(5):  # and the episode goes on as from the simulated start
+        assert np.array_equal(first.step(action)[0], second.step(action)[0])
+
+
+def test_a_randomised_phase_start_is_the_nominal_one_carried_over():
+    """Another tissue stiffness, puncture force and wound gap: the nominal start moved with the wound's rest shape
+    and settled, close to the approach simulated on those parameters."""
+    from suture_gym.envs.simulation import Simulation
+
+    env = SutureEnv("suture_throw")
+    scale = {"youngs_modulus": 1.3, "puncture_force": 0.8, "gap": 1.1}
+    nominal = env.params
+    params = {k: getattr(nominal, k) * f for k, f in scale.items()}
+    env.reset(seed=0, options={"phase": "inserted", "params": params})  # the tip in the gap, out of the near bar
+    assert env.params.gap == params["gap"] and env.sim.gap_rest == pytest.approx(params["gap"], rel=1e-6)
+    reference = Simulation(env.config)
+    reference.simulate_phase(replace(nominal, **params), "inserted")
+    events = reference.observables()
+    assert len(events.new_entries) == len(events.new_exits) == 1
+    task = env.task.state
+    assert task.punctured_stitch and task.exits_in_stitch == 1 and not task.exited
+    assert env.sim.state.coupling.path_count == reference.state.coupling.path_count == 1
+    assert np.linalg.norm(env.sim.tip_position() - reference.tip_position()) < 0.5e-3
+    assert np.linalg.norm(task.entry_point - events.new_entries[0]) < 0.5 * env.config.reward.access_tolerance
+    speeds = np.linalg.norm(env.sim.state.tissue.particle_qd, axis=1)
+    assert speeds.max() < 0.05  # settled (m/s)
+    _, reward, terminated, *_ = env.step(np.zeros(6, np.float32))
+    assert math.isfinite(reward) and not terminated
+
+
 def test_scripted_surgeon_completes_needle_insert():
     env = _env("SutureGym/NeedleInsert-v2")
     env.reset(seed=0)

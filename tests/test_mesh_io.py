@@ -170,6 +170,14 @@ def test_unreadable_surface_file_names_the_file(tmp_path, name):
         load_surface_mesh(tmp_path / name)
 
 
+def test_an_obj_with_a_non_utf8_comment_loads(tmp_path):
+    # trimesh decodes text that is not UTF-8 with charset_normalizer, which it does not require itself: without
+    # it (a core dependency of ours for this) the file was refused as unreadable
+    box = trimesh.creation.box(extents=(0.02, 0.02, 0.02))
+    (tmp_path / "latin1.obj").write_bytes(b"# Caf\xe9 exporter \xa9\n" + box.export(file_type="obj").encode())
+    assert load_surface_mesh(tmp_path / "latin1.obj").volume == pytest.approx(8e-6)
+
+
 def test_surface_from_a_meshio_format_loads(tmp_path):
     box = trimesh.creation.box(extents=(0.02, 0.02, 0.02))
     meshio.write(tmp_path / "box.vtu", meshio.Mesh(box.vertices, [("triangle", box.faces)]))

@@ -14,6 +14,7 @@ from __future__ import annotations
 import inspect
 from dataclasses import fields
 
+from suture_gym.envs.simulation import PHASE_SETTLE_STEPS
 from suture_gym.tasks.base import Task
 
 #: Section titles of the generated docstrings, in order.
@@ -85,6 +86,11 @@ def _start_lines(task: type[Task], config) -> list[str]:
     lines = [f"``reset(options={{'phase': ...}})`` picks the start phase (default ``{task.PHASES[0]!r}``):"]
     for phase in task.PHASES:
         lines.append(f"* ``{phase}``: {task.PHASE_DOCS.get(phase, 'see the task class')}.")
+    if len(task.PHASES) > 1:
+        lines.append("A phase past the first is simulated once per process on the nominal parameters (seconds to "
+                     "minutes) and then reused: a copy for the nominal physics, else carried over to the episode's "
+                     f"tissue and settled for {PHASE_SETTLE_STEPS} env steps; the needle's start offsets act only on "
+                     "the approach.")
     lines.append("Domain randomisation (``randomization``) samples the tissue stiffness, puncture force, wound gap "
                  "and the needle's start pose at every reset; all off by default.")
     return lines

@@ -18,15 +18,26 @@ the tasks need: each puncture (its entry point) and each exit of the tip (where 
 
 Start phases (``reset(..., phase)``) past the task's first are reached by the task's
 :meth:`~suture_gym.tasks.Task.start_phase` hook (by default the scripted surgeon of
-:mod:`suture_gym.tasks.surgeon`), from the approach state of the same parameters; the result is cached per
-parameters, so repeated resets of an unrandomised env cost one state copy.
+:mod:`suture_gym.tasks.surgeon`), simulated from the approach state of the config's nominal parameters once per
+process (:meth:`Simulation.simulate_phase`; tens of seconds to minutes) and cached for every simulation of the
+same config (:data:`PHASE_STARTS`). A reset into a phase then costs:
+
+* with the nominal physical parameters: one state copy, the simulated start bit for bit;
+* with other ones (a randomised episode's tissue stiffness, puncture force or wound gap): the scene's build, the
+  cached start carried over to it (the tissue moved with its rest shape where the wound gap differs) and
+  :data:`PHASE_SETTLE_STEPS` env steps with the holder held still, in which the tissue settles to its own
+  stiffness. The punctures are where the nominal approach made them (the puncture force only decides where the
+  tip pierces, and that has happened).
+
+Past the approach the episode's needle start offsets have no effect: the scripted approach drives the needle onto
+the planned circle before it reaches the tissue.
 """
 
 from __future__ import annotations
 
 import math
 from collections import OrderedDict
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 
 import numpy as np
 
@@ -61,8 +72,36 @@ from suture_gym.sim.scenes import (
 from suture_gym.tasks import Observables, PlannedArc, plan_stitches
 from suture_gym.tasks.surgeon import circle_grip_target
 
-#: Most built scenes and most scripted-phase start states kept per simulation.
+#: Most built scenes kept per simulation.
 CACHE_SIZE = 4
+#: Env steps a start phase carried over to other physical parameters settles, the holder held still (0.05 s at
+#: the defaults; after them the tissue of a carried-over SutureThrow start moves at about 1e-5 m/s).
+PHASE_SETTLE_STEPS = 10
+#: Most simulated start phases kept per process (:data:`PHASE_STARTS`).
+PHASE_CACHE_SIZE = 16
+
+
+@dataclass(frozen=True)
+class PhaseStart:
+    """A start phase simulated on a config's nominal parameters (:meth:`Simulation.simulate_phase`).
+
+    Attributes:
+        state: the physics state at the start of the phase (a snapshot: never stepped, only copied).
+        entries: the ``(3,)`` material points (rest shape, m) of the punctures the approach made, in order.
+        exits: the ``(3,)`` material points (rest shape, m) where the tip came out during the approach.
+        rest_q: ``(N, 3)`` the tissue's rest positions in that scene, m.
+    """
+
+    state: State
+    entries: tuple
+    exits: tuple
+    rest_q: np.ndarray
+
+
+#: The simulated start phases of this process: ``(EnvConfig, phase) -> PhaseStart``, least recently used first,
+#: at most :data:`PHASE_CACHE_SIZE`; shared by every simulation (so by every env of one config).
+PHASE_STARTS: OrderedDict = OrderedDict()
+
 
 @dataclass(frozen=True)
 class _Build:
@@ -125,7 +164,6 @@ class Simulation:
         #: Set to a dict to accumulate the solver's phase times (s) into it (benchmarks); None: no timing.
         self.timings: dict | None = None
         self._builds: OrderedDict = OrderedDict()
-        self._phase_cache: OrderedDict = OrderedDict()
         self.params: EpisodeParams | None = None
         self._build = self._get_build(nominal_params(config))
         self.state: State = self._build.initial.snapshot()
@@ -241,29 +279,74 @@ class Simulation:
     # ------------------------------------------------------------------------------------------------------
 
     def reset(self, params: EpisodeParams, phase: str = "approach") -> None:
-        """Start from the scene of ``params`` at rest, then (phases past ``approach``) run the scripted surgeon.
+        """Start from the scene of ``params`` at rest or, for a phase past the task's first, from the phase's start
+        (see the module docstring: the nominal parameters' simulated start, carried over to ``params``).
 
         Clears the recorded events; the phase's own events (its punctures and exits) are recorded for the
         task to take in.
         """
         if not isinstance(params, EpisodeParams):
             raise ValueError(f"params must be EpisodeParams, got {type(params).__name__}")
+        self._entries, self._exits = [], []
+        if phase == self.task_cls.PHASES[0]:
+            self._build = self._get_build(params)
+            self.params = params
+            self._load_state(self._build.initial)
+            return
+        start = self._phase_start(phase)
+        self._build = self._get_build(replace(params, needle_position_offset=np.zeros(3),
+                                              needle_rotation_offset=np.zeros(3)))
+        self.params = params
+        self._load_state(start.state)
+        self._entries, self._exits = list(start.entries), list(start.exits)
+        if params.physics_key() != nominal_params(self.config).physics_key():
+            self._carry_over(start)
+
+    def simulate_phase(self, params: EpisodeParams, phase: str) -> None:
+        """Simulate the approach to ``phase`` (past the task's first) on the scene of ``params`` from its
+        initial state, with the task's :meth:`~suture_gym.tasks.Task.start_phase` hook, recording its events:
+        what :meth:`reset` does once per process for the nominal parameters (slow: tens of seconds to minutes)."""
         self._build = self._get_build(params)
         self.params = params
-        key = (phase, params.physics_key(), params.needle_position_offset.tobytes(),
-               params.needle_rotation_offset.tobytes())
-        cached = self._phase_cache.get(key)
-        if cached is not None:
-            self._phase_cache.move_to_end(key)
-            self.restore(cached)
-            return
         self._load_state(self._build.initial)
         self._entries, self._exits = [], []
-        if phase != self.task_cls.PHASES[0]:
-            self.task_cls.start_phase(self, phase)
-        self._phase_cache[key] = self.snapshot()
-        if len(self._phase_cache) > CACHE_SIZE:
-            self._phase_cache.popitem(last=False)
+        self.task_cls.start_phase(self, phase)
+
+    def _phase_start(self, phase: str) -> PhaseStart:
+        """The :class:`PhaseStart` of ``phase`` on the config's nominal parameters, simulated on first use
+        (:meth:`simulate_phase`) and kept in :data:`PHASE_STARTS`."""
+        key = (self.config, phase)
+        start = PHASE_STARTS.get(key)
+        if start is not None:
+            PHASE_STARTS.move_to_end(key)
+            return start
+        self.simulate_phase(nominal_params(self.config), phase)
+        start = PhaseStart(self.state.snapshot(), tuple(e.copy() for e in self._entries),
+                           tuple(e.copy() for e in self._exits), self.model.tissue.particle_rest_q)
+        PHASE_STARTS[key] = start
+        if len(PHASE_STARTS) > PHASE_CACHE_SIZE:
+            PHASE_STARTS.popitem(last=False)
+        return start
+
+    def _carry_over(self, start: PhaseStart) -> None:
+        """Fit the loaded ``start`` (another scene's) to the current scene: move the tissue and the recorded
+        events with the rest shape's change (the wound gap's), then let the tissue settle to its own material for
+        :data:`PHASE_SETTLE_STEPS` env steps with the holder held at its pose."""
+        rest = self.model.tissue.particle_rest_q
+        shift = rest - start.rest_q
+        if np.any(shift):
+            tissue = self.state.tissue
+            tissue.particle_q += shift
+            tissue.particle_q_prev += shift
+
+            def moved(point: np.ndarray) -> np.ndarray:
+                return point + shift[int(np.argmin(np.sum((start.rest_q - point) ** 2, axis=1)))]
+
+            self._entries = [moved(e) for e in self._entries]
+            self._exits = [moved(e) for e in self._exits]
+        grip_pos, grip_quat = self.grip_pose()
+        for _ in range(PHASE_SETTLE_STEPS):
+            self.step_toward(grip_pos, grip_quat)
 
     def step(self, wrench: np.ndarray) -> None:
         """Advance one env step with the grip-point ``wrench`` (6,) ``[N, N m]`` held over every substep."""

@@ -22,6 +22,7 @@ import math
 import os
 import platform
 import time
+from pathlib import Path
 
 import gymnasium as gym
 import numpy as np
@@ -180,6 +181,49 @@ def check_suture_throw_scripted_thread() -> CheckResult:
                        _scripted_settings(env_id, rate, speed), run)
 
 
+#: Resets timed per start phase once its start is cached (the median is reported).
+PHASE_RESETS = 3
+
+
+def _reset_seconds(env: gym.Env, phase: str, seed: int) -> float:
+    start = time.perf_counter()
+    env.reset(seed=seed, options={"phase": phase})
+    return time.perf_counter() - start
+
+
+@benchmark("phase_reset")
+def bench_phase_reset() -> dict:
+    """Seconds to reset into each start phase of each task (``reset(options={"phase": ...})``): the first reset
+    of a process (``first_s``: the scripted approach simulated on the nominal parameters, numba already
+    compiled), then warm, the median of :data:`PHASE_RESETS` resets of a fresh env of the same config
+    (``warm_s``, the cached start), both with the randomisation off, and of the id's default, randomised
+    episodes (``warm_randomized_s``: each episode's parameters differ, so the start is carried over and
+    settled; its first reset, which simulates, untimed)."""
+    from suture_gym.envs.simulation import PHASE_STARTS
+
+    phases = []
+    nominal = {"randomization": {"enabled": False}}
+    for env_id in ENV_IDS:
+        for phase in gym.make(env_id).unwrapped.task_cls.PHASES:
+            PHASE_STARTS.clear()
+            entry = {"env_id": env_id, "phase": phase,
+                     "first_s": _reset_seconds(gym.make(env_id, config=nominal), phase, seed=0)}
+            warm = gym.make(env_id, config=nominal)
+            entry["warm_s"] = float(np.median([_reset_seconds(warm, phase, seed=k) for k in range(PHASE_RESETS)]))
+            env = gym.make(env_id)
+            _reset_seconds(env, phase, seed=0)
+            entry["warm_randomized_s"] = float(np.median(
+                [_reset_seconds(env, phase, seed=k) for k in range(1, PHASE_RESETS + 1)]))
+            phases.append(entry)
+    return {
+        "phases": phases,
+        "warm_s_max": max(max(e["warm_s"], e["warm_randomized_s"]) for e in phases),
+        "workload": "reset(options={'phase': p}); warm: fresh env of the nominal config after the first, and the "
+                    "id's randomised episodes (new parameters each)",
+    }
+
+
+
 def _vector_rate(num_envs: int, workers: int, steps: int) -> float:
     """Env steps per second (all envs together) of a NeedleInsert :class:`SutureVectorEnv` of ``num_envs`` envs
     on ``workers`` worker processes, over ``steps`` vector steps of seeded random actions after a warm-up."""
@@ -249,7 +293,6 @@ def _cold_start_run(cache_dir: str) -> dict:
     import json
     import subprocess
     import sys
-    from pathlib import Path
 
     root = str(Path(suture_gym.envs.__file__).resolve().parents[2])
     env = {**os.environ, "NUMBA_CACHE_DIR": cache_dir, "NUMBA_NUM_THREADS": "1",

@@ -65,6 +65,20 @@ MAX_HALVINGS = 4
 #: Relative rise of ``Phi`` a step may show and still count as not raising it: the round-off of summing ``Phi``
 #: (near equilibrium the true change is below it, and rejecting those steps would cost halvings for nothing).
 ROUNDOFF = 1e-10
+#: A quasi-Newton step that moves a particle by more than this fraction of the tissue's shortest rest edge leaves
+#: the range where the rest-shape matrix ``A0`` is a good model of the energy (large local strain): the substep's
+#: last solve then tests whether it has converged (below), at the cost of one more gradient and solve. Smaller
+#: steps are not tested (the scripted NeedleInsert expert's are below 0.33 of its 2 mm cells, the largest while its
+#: tip dents the pad).
+LARGE_STEP_FRACTION = 0.25
+#: Convergence test of a quasi-Newton solve after a large step, m/s: it goes on while its next step would still
+#: change some particle's velocity (the step over the substep ``h``) by more than this. Stopping the solve short
+#: of it hands the coupling rows and the next substep a velocity error; under a dent of most of a cell that error
+#: grew from substep to substep (issue 19: a needle pressed 5 N into the pad's edge by random in-box actions, a
+#: next step of 0.15 m/s, then 1-2 m/s, then a particle thrown 17 mm in one substep).
+CONVERGED_SPEED = 0.1
+#: Most iterations a quasi-Newton solve adds to its set ones to pass :data:`CONVERGED_SPEED`.
+MAX_EXTRA_ITERATIONS = 8
 
 
 @njit(cache=True)
@@ -504,6 +518,11 @@ class ImplicitTissue:
         stiffness = stiffness_matrix(tissue)
         a0 = stiffness[self.free_index][:, self.free_index] + sp.diags(mass[self.free_index] * self.inv_h2)
         self.factor = SparseCholesky(a0)
+        edges = tissue.particle_rest_q[tissue.tet_indices[:, [1, 2, 3, 2, 3, 3]]] - tissue.particle_rest_q[
+            tissue.tet_indices[:, [0, 0, 0, 1, 1, 2]]]
+        #: Step (m) above which :class:`QuasiNewton` tests its solve for convergence (:data:`LARGE_STEP_FRACTION`
+        #: of the shortest rest edge).
+        self.large_step = LARGE_STEP_FRACTION * float(np.sqrt(np.min(np.sum(edges * edges, axis=2))))
         #: ``(N, 3) float64`` 1.0 on free dofs (the mask :func:`incremental_potential` takes).
         self.free_mask = self.free.astype(np.float64)
         #: Tets with a free node, ascending: the only ones whose energy changes.
@@ -513,6 +532,9 @@ class ImplicitTissue:
         self.external = np.zeros((tissue.particle_count, 3))
         #: Whether the coupling rows moved the tissue since the substep's last elastic solve.
         self.rows_moved = False
+        #: Whether the substep's last solve ended on a step it did not test for convergence although it was large
+        #: (a :class:`QuasiNewton` solve with ``converge`` off): the substep's last sweep must solve again.
+        self.unconverged = False
         #: Columns of ``A0^-1`` (over the free dofs) of particles' three dofs, solved for on first use: particle
         #: ``p``'s are columns ``3 c .. 3 c + 2`` of the store, ``c = _column_of[p]`` (-1: not yet).
         self._column_store = np.zeros((self.free_index.size, 96))
@@ -530,6 +552,7 @@ class ImplicitTissue:
         ``y - h^2 g = x_prev + h v`` on the free dofs. Axis-aligned roller axes are set on their planes."""
         q[self.tissue.roller_particle, self.roller_axis] = self.roller_value
         self.rows_moved = False
+        self.unconverged = False
         _begin_substep(q, self.y, self.external, self.free_mask, gravity * (self.dt * self.dt))
 
     def potential(self, q: np.ndarray, with_gradient: bool = True) -> float:
@@ -611,34 +634,49 @@ class QuasiNewton(ImplicitTissue):
 
     name = "quasi_newton"
 
-    def solve(self, q: np.ndarray, iterations: int) -> None:
-        """``iterations`` steps ``x <- x - A0^-1 grad Phi(x)`` from the warm start in ``q`` (m, in place).
+    def solve(self, q: np.ndarray, iterations: int, converge: bool = True) -> None:
+        """``iterations`` steps ``x <- x - A0^-1 grad Phi(x)`` from the warm start in ``q`` (m, in place); with
+        ``converge``, if the last one moved a particle by more than :data:`LARGE_STEP_FRACTION` of the shortest rest
+        edge, up to :data:`MAX_EXTRA_ITERATIONS` more while the next step would still move one by more than
+        :data:`CONVERGED_SPEED` times ``h``. Without ``converge`` (a sweep before the last, whose solve lacks the
+        coupling rows' load: converging it would only move the tissue further into the needle) such a step sets
+        :attr:`unconverged` instead.
 
         Each step is checked: if it raised ``Phi`` (by more than :data:`ROUNDOFF` relative) it is halved, up to
         :data:`MAX_HALVINGS` times, and undone if ``Phi`` still rose, so no solve increases ``Phi``. (Without the
         check a step under large local strain, where the tangent stiffness exceeds twice ``K0``, can overshoot and
-        diverge.) The check's gradient is the next step's, so ``n`` iterations cost ``n`` solves and ``n + 1``
-        evaluations of ``Phi`` (the last one without the gradient).
+        diverge.) The check's gradient is the next step's, so ``n`` small steps cost ``n`` solves and ``n + 1``
+        evaluations of ``Phi`` (the last one without the gradient); a large last step costs a gradient and a
+        solve more, the convergence test's, whose step is taken only if it fails.
         """
         flat = q.reshape(-1)
         free = self.free_index
         phi = self.potential(q)
-        for iteration in range(iterations):
-            last = iteration == iterations - 1
+        converged = CONVERGED_SPEED * self.dt
+        self.unconverged = False
+        for iteration in range(iterations + MAX_EXTRA_ITERATIONS):
             step = -self.factor.solve(self.grad.reshape(-1)[free])
+            size = np.max(np.abs(step), initial=0.0)
+            if iteration >= iterations and not size > converged:
+                return
+            large = iteration == iterations - 1 and size > self.large_step
+            self.unconverged = large and not converge
+            test_next = iteration != iterations - 1 or (large and converge)
             flat[free] += step
-            trial = self.potential(q, not last)
+            trial = self.potential(q, test_next)
             bound = phi + ROUNDOFF * abs(phi)
             halvings = 0
             while not trial <= bound and halvings < MAX_HALVINGS:
                 step *= 0.5
                 flat[free] -= step
-                trial = self.potential(q, not last)
+                trial = self.potential(q, test_next)
                 halvings += 1
             if not trial <= bound:
                 flat[free] -= step
                 return
             phi = trial
+            if not test_next:
+                return
 
 
 class VertexBlockDescent(ImplicitTissue):
@@ -668,8 +706,9 @@ class VertexBlockDescent(ImplicitTissue):
         counts = np.bincount(vertex, minlength=tissue.particle_count)
         self.adjacency_offsets = np.concatenate([[0], np.cumsum(counts)]).astype(np.int32)
 
-    def solve(self, q: np.ndarray, iterations: int) -> None:
-        """``iterations`` VBD sweeps with Chebyshev acceleration from the warm start in ``q`` (m, in place)."""
+    def solve(self, q: np.ndarray, iterations: int, converge: bool = True) -> None:
+        """``iterations`` VBD sweeps with Chebyshev acceleration from the warm start in ``q`` (m, in place);
+        ``converge`` is the common interface's (:meth:`QuasiNewton.solve`): VBD has no convergence test."""
         t = self.tissue
         rho2 = self.chebyshev_rho**2
         older = q.copy()

@@ -221,14 +221,16 @@ BUILTIN_VERSION_HISTORY = (
     "x0.9-1.1, start pose +-0.5 mm and +-0.05 rad per axis; ``randomization.enabled: false`` for the nominal "
     "episode), and the observation scaled to O(1) with finite bounds (lengths in cm, forces and torques in "
     "units of the action's limits; ``observation.scaled: false`` for raw SI values). The observation's size "
-    "never depends on the randomisation.",
+    "never depends on the randomisation. Also (issue 19): the tissue's quasi-Newton solve iterates on after a "
+    "step of over a quarter cell until converged (a full-action dent at the pad's edge diverged), and a start "
+    "phase of a randomised episode is the nominal start carried over to its tissue and settled.",
     "v1 (issues 13, 14): real-scale physics. Tissue 300 kPa (a silicone suture-training pad; was 3 kPa) on the "
     "implicit quasi-Newton integrator with two sweeps per substep (was XPBD, which at the env's time step gave "
     "the wrong Poisson's ratio and softness); every force x100: puncture 0.5 N, tear 10 N, actions up to 5 N "
     "and 0.02 N m per axis, holder 2 kg; the insertion force model on (exit peak 0.25 N, cutting 0.1 N, a 1 mm "
     "tip patch); thread nodes in a path keep their own inertia along it. Also (issue 19): actions outside the "
-    "box are clipped to it, a divergence ends the episode as a failure (terminated, failure penalty), and a step "
-    "after the env ended the episode raises.",
+    "box are clipped to it, a divergence ends the episode as a failure (terminated, failure penalty), and a "
+    "step after the env ended the episode raises.",
     "v0: 3 kPa XPBD tissue and millinewton forces (puncture 5 mN, actions up to 0.05 N and 2e-4 N m).",
 )
 #: The thread tasks' version history: :data:`BUILTIN_VERSION_HISTORY` with the thread's own changes added.
