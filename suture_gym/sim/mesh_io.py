@@ -97,6 +97,46 @@ def read_tet_mesh(path: str | Path) -> TetMesh:
         raise ValueError(f"{str(path)!r}: {exc}") from exc
 
 
+def read_tet_regions(path: str | Path, name: str | None = None) -> tuple[TetMesh, np.ndarray]:
+    """Read a tetrahedral mesh and an integer tag per tet (material regions: skin, fat, muscle ...).
+
+    Args:
+        path: as :func:`read_tet_mesh`.
+        name: the cell-data array holding the tags (``"gmsh:physical"`` for Gmsh physical groups,
+            ``"medit:ref"`` for Medit references, any name in a ``.vtu``); None: the only integer cell-data array
+            of the file, or ``gmsh:physical`` among Gmsh's.
+
+    Returns:
+        ``(mesh, tags)``: the mesh as :func:`read_tet_mesh` returns it (tets in the file's order) and ``(T,)
+        int64`` tags. Map them to ``0 .. L - 1`` (``np.unique(tags, return_inverse=True)``) for
+        :meth:`~suture_gym.sim.model.TissueModel.from_mesh`'s ``tet_material``.
+
+    Raises:
+        ValueError: naming the file, as :func:`read_tet_mesh`, or when the tags are missing, not integers, or
+            ``name`` is None and the file has several candidate arrays (the message lists them).
+    """
+    mesh = read_tet_mesh(path)
+    path = Path(path)
+    data = _read_meshio(path)
+    blocks = [k for k, c in enumerate(data.cells) if c.type == "tetra"]
+    candidates = sorted(key for key, arrays in data.cell_data.items()
+                        if all(np.issubdtype(np.asarray(arrays[k]).dtype, np.integer) for k in blocks))
+    if name is None:
+        if "gmsh:physical" in candidates:
+            name = "gmsh:physical"
+        elif len(candidates) == 1:
+            name = candidates[0]
+        else:
+            raise ValueError(f"{str(path)!r}: name the tet tags to read, one of the integer cell data {candidates}"
+                             if candidates else f"{str(path)!r} has no integer cell data on its tets to read tags from")
+    if name not in data.cell_data:
+        raise ValueError(f"{str(path)!r} has no cell data {name!r}; it has {sorted(data.cell_data)}")
+    tags = [np.asarray(data.cell_data[name][k]) for k in blocks]
+    if not all(np.issubdtype(t.dtype, np.integer) for t in tags):
+        raise ValueError(f"{str(path)!r}: cell data {name!r} must hold integer tags, got {tags[0].dtype}")
+    return mesh, np.concatenate([t.reshape(-1) for t in tags]).astype(np.int64)
+
+
 def _read_meshio(path: Path):
     """``meshio.read(path)``, every way a bad file fails turned into a ValueError naming ``path``.
 
@@ -136,8 +176,10 @@ def _points(data, path: Path) -> np.ndarray:
     return vertices
 
 
-def write_tet_mesh(path: str | Path, mesh: TetMesh, point_data: dict[str, np.ndarray] | None = None) -> None:
-    """Write ``mesh`` (and optional per-vertex arrays, e.g. displacement (N,3) m) with meshio.
+def write_tet_mesh(path: str | Path, mesh: TetMesh, point_data: dict[str, np.ndarray] | None = None,
+                   cell_data: dict[str, np.ndarray] | None = None) -> None:
+    """Write ``mesh`` (and optional per-vertex arrays, e.g. displacement (N,3) m, and per-tet arrays, e.g.
+    integer material tags (T,) for :func:`read_tet_regions`) with meshio.
 
     The format follows the file extension (``.vtu`` opens in ParaView; ``.msh`` is Gmsh 4.1).
     """
@@ -148,10 +190,15 @@ def write_tet_mesh(path: str | Path, mesh: TetMesh, point_data: dict[str, np.nda
             raise ValueError(
                 f"point_data[{name!r}] has {len(values)} rows; the mesh has {len(mesh.vertices)} vertices"
             )
+    cell_data = {k: np.asarray(v) for k, v in (cell_data or {}).items()}
+    for name, values in cell_data.items():
+        if len(values) != len(mesh.tets):
+            raise ValueError(f"cell_data[{name!r}] has {len(values)} rows; the mesh has {len(mesh.tets)} tets")
     path = Path(path)
     meshio.write(
         path,
-        meshio.Mesh(mesh.vertices, [("tetra", np.asarray(mesh.tets, dtype=np.int64))], point_data=point_data),
+        meshio.Mesh(mesh.vertices, [("tetra", np.asarray(mesh.tets, dtype=np.int64))], point_data=point_data,
+                    cell_data={k: [v] for k, v in cell_data.items()}),
         file_format="gmsh" if path.suffix.lower() == ".msh" else None,
     )
 
