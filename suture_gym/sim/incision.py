@@ -18,7 +18,8 @@ The cut follows the mesh's own faces: no tet is split, so the mesh keeps its qua
    ends inside the tissue (the crack front: the bottom of the cut and ends that do not reach the surface)
    keep one group and are not copied, so both cut faces become open wound faces that meet at the front.
 4. **Gap.** With ``gap > 0`` the wound is opened in the rest shape: the copies on either side move by
-   ``-+ gap/2 * w * S`` with ``w = min(1, distance to the crack front / d)`` (a V that closes at the front),
+   ``-+ gap/2 * w * S`` with ``w = min(1, distance to the crack front / d')`` (a V that closes at the front;
+   ``d'`` is ``d``, or the farthest copy's distance where the mesh's faces stop the cut short of ``d``),
    and every other vertex by the harmonic interpolation of those moves (graph Laplacian of the cut mesh), so
    the opening spreads into the tissue instead of squashing the tets at the cut. A cut that separates the
    mesh (``allow_split``) with no crack front moves each piece rigidly by ``-+ gap/2`` along ``S``.
@@ -270,31 +271,20 @@ def incise(mesh: TetMesh, incision: Incision, tolerance: float | None = None, al
             f"near it (faces of about {np.median(size):.3g} m), or it does not run over the mesh"
         )
 
-    # Corners (tet, local vertex) joined through the uncut faces they share; each component is one vertex copy.
+    # Split along the cut faces; where that leaves a non-manifold boundary (the cut's edge running along the outer
+    # surface, or two parts of a staircase cut touching at a vertex), leave the cut faces there uncut and redo.
     local_a = np.argmax(tets[tet_a][:, :, None] == face_v[:, None, :], axis=1)  # (F, 3)
     local_b = np.argmax(tets[tet_b][:, :, None] == face_v[:, None, :], axis=1)
+    while True:
+        new_tets, source_vertex = _split(tets, n, tet_a, tet_b, local_a, local_b, ~is_cut)
+        bad = source_vertex[_nonmanifold_vertices(new_tets, len(source_vertex))]
+        if bad.size == 0:
+            break
+        is_cut &= ~np.isin(face_v, bad).any(axis=1)
+        if not is_cut.any():
+            raise ValueError("the incision leaves no cut face that keeps the boundary a manifold: move or smooth "
+                             "the polyline, or refine the mesh")
     keep = ~is_cut
-    rows = (4 * tet_a[keep, None] + local_a[keep]).ravel()
-    cols = (4 * tet_b[keep, None] + local_b[keep]).ravel()
-    corners = 4 * len(tets)
-    graph = coo_matrix((np.ones(len(rows)), (rows, cols)), shape=(corners, corners))
-    _, label = connected_components(graph, directed=False)
-    corner_vertex = tets.ravel()
-    # One index per component: each vertex's first component (by lowest corner) keeps the vertex's index, the
-    # others are appended in (vertex, corner) order.
-    components = label.max() + 1
-    first_corner = np.full(components, corners)
-    np.minimum.at(first_corner, label, np.arange(corners))
-    component_vertex = corner_vertex[first_corner]
-    order = np.lexsort((first_corner, component_vertex))
-    is_first = np.ones(components, dtype=bool)
-    is_first[1:] = component_vertex[order][1:] != component_vertex[order][:-1]
-    new_index = np.empty(components, dtype=np.int64)
-    new_index[order[is_first]] = component_vertex[order[is_first]]
-    extra = order[~is_first]
-    new_index[extra] = n + np.arange(len(extra))
-    source_vertex = np.concatenate([np.arange(n), component_vertex[extra]])
-    new_tets = new_index[label].reshape(tets.shape)
     new_vertices = vertices[source_vertex]
 
     pieces_before = _pieces(tets, pair, tet_a, tet_b, np.ones(len(pair), dtype=bool))
@@ -317,20 +307,64 @@ def incise(mesh: TetMesh, incision: Incision, tolerance: float | None = None, al
     front = np.intersect1d(minus, plus)
     left, right = np.setdiff1d(minus, front), np.setdiff1d(plus, front)
 
+    result = TetMesh(vertices=new_vertices, tets=new_tets.astype(np.int32))
     if incision.gap > 0.0:
-        new_vertices = _open(new_vertices, new_tets, left, right, front, incision,
-                             (origin, tangent, cut, length, side_normal))
-    try:
-        result = TetMesh(vertices=new_vertices, tets=new_tets.astype(np.int32))
-    except ValueError as exc:
-        if incision.gap > 0.0:
+        frames = (origin, tangent, cut, length, side_normal)
+        opened = _open(new_vertices, new_tets, left, right, front, incision, frames)
+        try:
+            result = TetMesh(vertices=opened, tets=result.tets)
+        except ValueError as exc:
             raise ValueError(
                 f"the incision's gap {incision.gap:.3g} m distorts the mesh beyond repair ({exc}): use a gap below "
                 f"about the element size next to the cut ({np.median(size[is_cut]):.3g} m)"
             ) from exc
-        raise ValueError(f"the incision leaves an invalid mesh ({exc}): move or smooth the polyline") from exc
     left, right, front, source_vertex = (np.asarray(a, dtype=np.int32) for a in (left, right, front, source_vertex))
     return IncisedMesh(result, source_vertex, left, right, front, int(is_cut.sum()))
+
+
+def _split(tets, n, tet_a, tet_b, local_a, local_b, joined) -> tuple[np.ndarray, np.ndarray]:
+    """``(tets (T, 4), source vertex (N',))`` of the mesh split along the interior faces not ``joined``: the
+    corners (tet, local vertex) joined through the faces they share form components, one vertex copy each; each
+    vertex's first component (by lowest corner) keeps its index, the others are appended in (vertex, corner)
+    order."""
+    rows = (4 * tet_a[joined, None] + local_a[joined]).ravel()
+    cols = (4 * tet_b[joined, None] + local_b[joined]).ravel()
+    corners = 4 * len(tets)
+    graph = coo_matrix((np.ones(len(rows)), (rows, cols)), shape=(corners, corners))
+    _, label = connected_components(graph, directed=False)
+    corner_vertex = tets.ravel()
+    components = label.max() + 1
+    first_corner = np.full(components, corners)
+    np.minimum.at(first_corner, label, np.arange(corners))
+    component_vertex = corner_vertex[first_corner]
+    order = np.lexsort((first_corner, component_vertex))
+    is_first = np.ones(components, dtype=bool)
+    is_first[1:] = component_vertex[order][1:] != component_vertex[order][:-1]
+    new_index = np.empty(components, dtype=np.int64)
+    new_index[order[is_first]] = component_vertex[order[is_first]]
+    extra = order[~is_first]
+    new_index[extra] = n + np.arange(len(extra))
+    return new_index[label].reshape(tets.shape), np.concatenate([np.arange(n), component_vertex[extra]])
+
+
+def _nonmanifold_vertices(tets: np.ndarray, n: int) -> np.ndarray:
+    """Vertices where the boundary of ``tets`` is not a manifold: on an edge of other than two boundary
+    triangles, or with their boundary triangles in more than one fan (as
+    :func:`~suture_gym.sim.mesh.validate_tet_mesh` checks)."""
+    tri = surface_triangles(tets).astype(np.int64)
+    edges = np.sort(np.concatenate([tri[:, [0, 1]], tri[:, [1, 2]], tri[:, [2, 0]]]), axis=1)
+    unique, counts = np.unique(edges, axis=0, return_counts=True)
+    bad = [unique[counts != 2].ravel()]
+    # Fans: around each vertex, link edges join its (vertex, neighbour) pairs; one component per fan.
+    centre, a, b = tri.ravel(), tri[:, [1, 2, 0]].ravel(), tri[:, [2, 0, 1]].ravel()
+    nodes, inverse = np.unique(np.concatenate([centre * n + a, centre * n + b]), return_inverse=True)
+    m = len(centre)
+    graph = coo_matrix((np.ones(m), (inverse[:m], inverse[m:])), shape=(len(nodes), len(nodes)))
+    _, labels = connected_components(graph, directed=False)
+    fans = np.unique(np.stack([nodes // n, labels], axis=1), axis=0)[:, 0]
+    vertex, count = np.unique(fans, return_counts=True)
+    bad.append(vertex[count > 1])
+    return np.unique(np.concatenate(bad))
 
 
 def _pieces(tets: np.ndarray, pair: np.ndarray, tet_a: np.ndarray, tet_b: np.ndarray, joined: np.ndarray) -> int:
@@ -347,7 +381,7 @@ def _open(vertices, tets, left, right, front, incision: Incision, frames) -> np.
     seg, _ = _nearest_segment(vertices[faces], origin, tangent, cut, length)
     if len(front):
         reach, _ = cKDTree(vertices[front]).query(vertices[faces])
-        weight = np.minimum(1.0, reach / incision.depth)
+        weight = np.minimum(1.0, reach / min(incision.depth, float(reach.max())))
     else:
         weight = np.ones(len(faces))
     sign = np.concatenate([-np.ones(len(left)), np.ones(len(right))])
