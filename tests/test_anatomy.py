@@ -49,11 +49,14 @@ def test_hand_surface_is_closed_and_hand_sized():
 
 
 def test_hand_has_a_wound_on_its_back():
-    scene = hand(edge_length=0.012)
+    scene = hand(edge_length=0.008)
     rest = scene.model.tissue.particle_rest_q
     left, right = scene.regions["left_wound_face"], scene.regions["right_wound_face"]
     assert len(left) == len(right) > 0
     assert np.ptp(rest[left, 1]) < 1e-9 and np.ptp(rest[right, 1]) < 1e-9  # flat: cut along a grid plane
     top = rest[:, 2].max()
-    assert np.all(rest[np.concatenate([left, right]), 2] > top - 0.012 - 1e-9)  # on the back, one cell deep
-    assert wound_gap(scene) == pytest.approx(0.0015, rel=0.05)
+    assert np.all(rest[np.concatenate([left, right]), 2] > top - 0.016 - 1e-9)  # on the back, two cells deep
+    mouth = rest[left, 2].max()  # the top row: open by the full gap (a V below it)
+    top_left, top_right = left[rest[left, 2] == mouth], right[rest[right, 2] == mouth]
+    assert rest[top_right, 1].mean() - rest[top_left, 1].mean() == pytest.approx(0.0015)
+    assert 0.0 < wound_gap(scene) < 0.0015

@@ -60,8 +60,8 @@ def abdominal_wall(
     size: tuple[float, float, float] = (0.12, 0.08, 0.02),
     cells: tuple[int, int, int] = (14, 10, 6),
     radius: float = 0.15,
-    incision_length: float = 0.08,
-    incision_depth: float = 0.013,
+    incision_length: float | None = None,
+    incision_depth: float | None = None,
     gap: float = 0.002,
     gravity: float = STANDARD_GRAVITY,
 ) -> Scene:
@@ -69,8 +69,9 @@ def abdominal_wall(
 
     Geometry: :func:`curved_slab` of ``size`` (m) in ``cells``; by default 14 x 10 x 6 cells, 4,200 tets and
     1,155 vertices before the cut (paper: 4,333 and 1,261). The incision runs along ``+x`` on the crest
-    (``y = 0``, ``z = size_z``) over ``incision_length`` centred on the patch, ``incision_depth`` deep (through
-    skin and fat by default), its mouth open by ``gap`` (:mod:`~suture_gym.sim.incision`). Tets take the
+    (``y = 0``, ``z = size_z``) over ``incision_length`` centred on the patch (default two thirds of its length),
+    ``incision_depth`` deep (default two thirds of its thickness: through skin and fat of the default layers),
+    its mouth open by ``gap`` (:mod:`~suture_gym.sim.incision`). Tets take the
     material of their ``layers`` by depth below the outer surface. The patch's edges (its four side faces) and
     its inner surface are pinned: the rest of the body holds it.
 
@@ -82,6 +83,8 @@ def abdominal_wall(
         raise ValueError("layers must end with a layer of thickness inf (it fills the rest)")
     mesh, box = curved_slab(size, cells, radius)
     layer = layer_index(depth_below_surface(mesh.vertices, mesh.tets), [t for _, t, _ in layers[:-1]])
+    incision_length = 2.0 / 3.0 * size[0] if incision_length is None else incision_length
+    incision_depth = 2.0 / 3.0 * size[2] if incision_depth is None else incision_depth
     start = 0.5 * (size[0] - incision_length)
     crest = (0.0, size[2])
     incision = Incision([[start, *crest], [start + incision_length, *crest]], depth=incision_depth, gap=gap)
@@ -136,19 +139,42 @@ def _smooth_union(a: np.ndarray, b: np.ndarray, k: float) -> np.ndarray:
     return b + (a - b) * h - k * h * (1.0 - h)
 
 
+#: Volume of :func:`hand_surface`, m^3 (303 ml at 4 mm, 299 ml at 6 mm spacing): the env config's tet estimate.
+HAND_VOLUME = 3.0e-4
+
+
 def hand_distance(p: np.ndarray) -> np.ndarray:
     """Signed distance (m, negative inside) of points ``p (M, 3)`` to an adult hand lying palm down, built from
     smooth primitives: a rounded-box palm 9 x 8.4 x 2.4 cm centred at the origin, a wrist stump toward ``-x``,
     four fingers along ``+x`` (capsules of radius 7.8-8.5 mm, 6.5-8 cm long, at least 4 mm apart) and a thumb
     angled toward ``+y``, blended with 1 cm fillets (5 mm at the fingers, whose webs would otherwise close).
-    The back of the hand faces ``+z``; the hand spans about 20 x 15 x 3 cm."""
+    Palm, wrist, fingers and thumb all rest flat on the table ``z = -0.012`` (the shape is cut there); the back
+    of the hand faces ``+z``; the hand spans about 20 x 15 x 2.4 cm."""
     p = np.asarray(p, dtype=np.float64)
     d = _rounded_box(p, (0.0, 0.0, 0.0), (0.045, 0.042, 0.012), 0.01)
-    d = _smooth_union(d, _rounded_box(p, (-0.06, 0.0, 0.0), (0.02, 0.032, 0.013), 0.01), 0.01)
+    d = _smooth_union(d, _rounded_box(p, (-0.06, 0.0, 0.0), (0.02, 0.032, 0.012), 0.01), 0.01)
     for y, length, radius in ((-0.0315, 0.065, 0.0078), (-0.0105, 0.08, 0.0085), (0.0105, 0.078, 0.0085),
                               (0.0315, 0.07, 0.0082)):
-        d = _smooth_union(d, _capsule(p, (0.035, y, 0.0), (0.035 + length, y, 0.0), radius), 0.005)
-    return _smooth_union(d, _capsule(p, (-0.015, 0.035, -0.002), (0.03, 0.075, 0.0), 0.0105), 0.01)
+        z = radius - 0.012  # resting on the table with the palm
+        d = _smooth_union(d, _capsule(p, (0.035, y, z), (0.035 + length, y, z), radius), 0.005)
+    d = _smooth_union(d, _capsule(p, (-0.015, 0.035, -0.0015), (0.03, 0.075, -0.0015), 0.0105), 0.01)
+    return np.maximum(d, -0.012 - p[:, 2])  # flat on the table: the fillets may not bulge below it
+
+
+#: ``(lower, upper)`` corners of a box around :func:`hand_distance`'s hand, m.
+HAND_BOUNDS = (np.array([-0.09, -0.06, -0.025]), np.array([0.13, 0.095, 0.025]))
+
+
+class _Implicit:
+    """A shape given by a signed distance (m, negative inside), with what the voxel backend asks of a surface:
+    ``bounds`` and ``contains``."""
+
+    def __init__(self, distance, bounds) -> None:
+        self.distance = distance
+        self.bounds = bounds
+
+    def contains(self, points: np.ndarray) -> np.ndarray:
+        return self.distance(points) < 0.0
 
 
 def hand_surface(spacing: float = 0.004):
@@ -161,7 +187,7 @@ def hand_surface(spacing: float = 0.004):
     """
     import trimesh
 
-    lo, hi = np.array([-0.09, -0.06, -0.025]), np.array([0.13, 0.095, 0.025])
+    lo, hi = HAND_BOUNDS
     cells = np.ceil((hi - lo) / spacing).astype(int)
     grid = box_tet_grid(tuple(cells * spacing), tuple(int(c) for c in cells), origin=tuple(lo))
     value = hand_distance(grid.vertices)
@@ -211,37 +237,54 @@ def _marching_tets(vertices: np.ndarray, tets: np.ndarray, value: np.ndarray) ->
 
 def hand(
     material: TissueMaterial | None = None,
-    edge_length: float = 0.0057,
+    edge_length: float = 0.0058,
     incision_x: tuple[float, float] = (-0.02, 0.025),
     incision_depth: float = 0.01,
     gap: float = 0.0015,
     gravity: float = STANDARD_GRAVITY,
 ) -> Scene:
-    """The hand of :func:`hand_surface` filled by the built-in voxel backend, a wound on its back (paper Fig. 7).
+    """The hand of :func:`hand_distance` filled by the built-in voxel backend, a wound on its back (paper Fig. 7).
 
-    Geometry: :func:`hand_surface` tetrahedralised at ``edge_length`` (m; the default 5.7 mm gives about the
-    paper's 8.7k tets). The incision runs along ``+x`` over the back of the palm, on the voxel grid's plane
-    nearest ``y = 0`` (so its faces are flat), from ``incision_x[0]`` to ``incision_x[1]`` (m), following the
-    surface, ``incision_depth`` deep (two cells), its mouth open by ``gap``. The hand lies palm down on a table:
-    the base ``z >= z_min`` is a contact, the nodes on it and the wrist's cut end (``x`` within one edge of the
-    lowest) are pinned.
+    Geometry: the cells of an ``edge_length`` (m) grid whose centres lie inside the hand (the voxel backend,
+    :func:`~suture_gym.sim.mesh_io.voxel_fill`, asking the signed distance rather than a triangulated surface:
+    exact and deterministic); the default 5.8 mm gives 8,555 tets (paper: 8,656). The incision runs along
+    ``+x`` over the back of the palm, on the voxel grid's plane nearest ``y = 0`` (so its faces are flat), from
+    ``incision_x[0]`` to ``incision_x[1]`` (m), following the surface, ``incision_depth`` deep (two cells), its
+    mouth open by ``gap``. The hand lies flat on a table (:func:`resting_incised`; the nodes within one and a
+    half edges of the table and of the wrist's cut end are pinned: the lowest cells of the fingers, whose round
+    undersides leave them a cell above the palm's, included. Fingers left free as cantilevers flew off within
+    0.1 s on the implicit integrator with one inner iteration per sweep, the environments' default; with four
+    they sag by the 6 mm of beam theory).
 
     Regions: ``left_wound_face``, ``right_wound_face``, ``crack_front``, ``pinned``.
     """
-    from suture_gym.sim.mesh_io import tetrahedralize_surface
+    from suture_gym.sim.mesh_io import voxel_fill
 
     material = material or TissueMaterial(youngs_modulus=3.0e5, poisson_ratio=0.45)
-    mesh = tetrahedralize_surface(hand_surface(), edge_length, backend="voxel")
+    mesh = voxel_fill(_Implicit(hand_distance, HAND_BOUNDS), edge_length)
     lattice = np.unique(np.round(mesh.vertices[:, 1], 12))
     y = float(lattice[np.argmin(np.abs(lattice))])  # the grid plane nearest y = 0: flat wound faces
     x = np.linspace(incision_x[0], incision_x[1], 6)
     points = np.stack([x, np.full_like(x, y), _top_height(mesh, x, y)], axis=1)
-    incision = Incision(points, depth=incision_depth, gap=gap)
+    scene = resting_incised(mesh, Incision(points, depth=incision_depth, gap=gap), material, 1.5 * edge_length,
+                            gravity)
+    scene.settings.update({"scene": "hand", "edge_length_m": edge_length, "backend": "voxel"})
+    return scene
+
+
+def resting_incised(mesh: TetMesh, incision: Incision, material: TissueMaterial, pin_height: float,
+                    gravity: float = STANDARD_GRAVITY) -> Scene:
+    """Any tet mesh with an incision, resting on a rigid table at its lowest point.
+
+    The base ``z >= z_min`` is a contact, the nodes within ``pin_height`` (m) above it and those within
+    ``pin_height`` of the lowest ``x`` (a cut end, such as the hand's wrist) are pinned; gravity ``-z``.
+
+    Regions: ``left_wound_face``, ``right_wound_face``, ``crack_front``, ``pinned``. Settings add the incision.
+    """
     cut = incise(mesh, incision)
     v = cut.mesh.vertices
-    tol = 1e-9
     z_min = float(v[:, 2].min())
-    pinned = (v[:, 2] <= z_min + tol) | (v[:, 0] <= float(v[:, 0].min()) + edge_length)
+    pinned = (v[:, 2] <= z_min + pin_height) | (v[:, 0] <= float(v[:, 0].min()) + pin_height)
     n = cut.mesh.vertex_count
     regions = {
         "left_wound_face": _mask(n, cut.left_face),
@@ -250,25 +293,26 @@ def hand(
         "pinned": pinned,
     }
     settings = {
-        "scene": "hand",
-        "edge_length_m": edge_length,
-        "backend": "voxel",
-        "incision": {"points_m": incision.points.tolist(), "depth_m": incision_depth, "gap_m": gap},
+        "scene": "resting_incised",
+        "pin_height_m": pin_height,
+        "incision": {"points_m": incision.points.tolist(), "depth_m": incision.depth, "gap_m": incision.gap},
     }
     supports = (np.array([[0.0, 0.0, 1.0]]), np.array([z_min]))
     return _scene(cut.mesh, material, pinned, (0.0, 0.0, -gravity), regions, settings, supports=supports)
 
 
 def _top_height(mesh: TetMesh, x: np.ndarray, y: float = 0.0) -> np.ndarray:
-    """Height (m) of the mesh's upper boundary above ``(x, y)``: the highest crossing of a vertical ray."""
+    """Height (m) of the mesh's upper boundary above ``(x, y)``: the highest crossing of vertical rays just
+    either side of ``y`` (1 um off, so that a ray along a voxel grid's plane does not slip between its faces)."""
     import trimesh
 
     surface = trimesh.Trimesh(mesh.vertices, surface_triangles(mesh.tets), process=False)
     top = float(mesh.vertices[:, 2].max()) + 1.0
-    origins = np.stack([x, np.full_like(x, y), np.full_like(x, top)], axis=1)
-    hits, ray, _ = surface.ray.intersects_location(origins, np.tile([0.0, 0.0, -1.0], (len(x), 1)))
     height = np.full(len(x), -np.inf)
-    np.maximum.at(height, ray, hits[:, 2])
+    for offset in (-1e-6, 1e-6):
+        origins = np.stack([x, np.full_like(x, y + offset), np.full_like(x, top)], axis=1)
+        hits, ray, _ = surface.ray.intersects_location(origins, np.tile([0.0, 0.0, -1.0], (len(x), 1)))
+        np.maximum.at(height, ray, hits[:, 2])
     if not np.all(np.isfinite(height)):
         bad = x[~np.isfinite(height)].tolist()
         raise ValueError(f"the incision at x = {bad} m, y = {y} m does not lie over the hand")

@@ -66,3 +66,36 @@ def layer_index(depth: np.ndarray, thicknesses) -> np.ndarray:
     if thicknesses.ndim != 1 or not np.all(np.isfinite(thicknesses)) or not np.all(thicknesses > 0):
         raise ValueError(f"layer thicknesses must be positive lengths in metres, got {thicknesses.tolist()}")
     return np.searchsorted(np.cumsum(thicknesses), np.asarray(depth, dtype=np.float64), side="right").astype(np.int64)
+
+
+def layered(scene, materials, thicknesses, up=(0.0, 0.0, 1.0)):
+    """The tissue ``scene`` (a :class:`~suture_gym.sim.scenes.Scene` without strands) with its tets given
+    ``materials`` (top first) by depth below its upper surface (:func:`depth_below_surface`, :func:`layer_index`);
+    the same mesh, pinned particles, base supports, regions and state. Its settings add ``tet_layers`` (tets
+    per layer) and the materials.
+
+    Args:
+        materials: ``L`` :class:`~suture_gym.sim.model.TissueMaterial`, top first.
+        thicknesses: ``(L - 1,)`` m, every layer's but the deepest.
+    """
+    from suture_gym.sim.mesh import TetMesh
+    from suture_gym.sim.model import Model, State, TissueModel, TissueState
+    from suture_gym.sim.scenes import Scene, _material_settings
+
+    tissue = scene.model.tissue
+    if scene.model.needle is not None or tissue.roller_particle.size:
+        raise ValueError("layered takes a tissue scene without strands or roller supports")
+    if len(materials) != len(np.atleast_1d(thicknesses)) + 1:
+        raise ValueError(f"layered needs one material per layer: {len(np.atleast_1d(thicknesses)) + 1}, got "
+                         f"{len(materials)}")
+    mesh = TetMesh(tissue.particle_rest_q, tissue.tet_indices)
+    layer = layer_index(depth_below_surface(mesh.vertices, mesh.tets, up), thicknesses)
+    rebuilt = TissueModel.from_mesh(mesh, list(materials), pinned=tissue.particle_inv_mass == 0.0, tet_material=layer,
+                                    supports=(tissue.support_normal, tissue.support_offset))
+    model = Model(tissue=rebuilt, gravity=scene.model.gravity)
+    state = State(tissue=TissueState.at_rest(rebuilt))
+    state.tissue.assign(scene.state.tissue)
+    settings = {**scene.settings, "material": _material_settings(list(materials)),
+                "layer_thickness_m": np.atleast_1d(thicknesses).tolist(),
+                "tet_layers": np.bincount(layer, minlength=len(materials)).tolist()}
+    return Scene(model=model, state=state, regions=scene.regions, settings=settings)
