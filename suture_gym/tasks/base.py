@@ -215,6 +215,12 @@ class StepContext:
     failed: bool
 
 
+#: Scene kinds with an incision instead of two bars (:mod:`suture_gym.sim.anatomy`, a user's mesh): their stitches
+#: are planned on the built tissue (:func:`~suture_gym.tasks.geometry.plan_across_incision`).
+ANATOMY_KINDS: tuple[str, ...] = ("abdominal_wall", "hand", "mesh")
+#: Scene kinds with a wound to suture.
+WOUND_KINDS: tuple[str, ...] = ("wound", *ANATOMY_KINDS)
+
 #: The built-in tasks' version history (:attr:`Task.VERSION_HISTORY`): the physics they share.
 BUILTIN_VERSION_HISTORY = (
     "v1 (issues 13, 14): real-scale physics. Tissue 300 kPa (a silicone suture-training pad; was 3 kPa) on the "
