@@ -5,6 +5,7 @@ import pytest
 
 from suture_gym.sim.incision import Incision, incise
 from suture_gym.sim.mesh import TetMesh, box_tet_grid, surface_triangles
+from suture_gym.sim.mesh_io import voxel_fill
 from suture_gym.sim.scenes import two_bar_wound
 
 # Each bar of the two-bar wound: 4 x 1 x 1 cm in 4 x 2 x 2 cells; the box is both bars side by side, no gap.
@@ -41,7 +42,7 @@ def test_full_cut_of_a_box_reproduces_the_two_bar_wound():
     rest = tissue.particle_rest_q
     assert _rows(shifted.vertices[cut.left_face]) == _rows(rest[wound.regions["left_wound_face"]])
     assert _rows(shifted.vertices[cut.right_face]) == _rows(rest[wound.regions["right_wound_face"]])
-    assert len(cut.crack_front) == 0 and cut.cut_faces == 2 * 4 * 2
+    assert len(cut.crack_front) == 0 and cut.cut_faces == 2 * 4 * 2 and cut.dropped_faces == 0
 
 
 def test_partial_cut_opens_the_top_and_keeps_the_mesh_whole():
@@ -78,6 +79,26 @@ def test_curved_polyline_on_a_finer_box_stays_valid():
     assert cut.mesh.tet_count == box.tet_count
     assert len(cut.left_face) > 0 and len(cut.right_face) > 0 and len(cut.crack_front) > 0
     assert cut.mesh.vertex_count == box.vertex_count + len(cut.right_face)
+
+
+def test_cut_over_a_step_drops_the_faces_that_would_make_it_non_manifold():
+    """A polyline over a 4 mm step of a voxel block: the staircase cut under its slanted segment touches the
+    step's edge, so a few faces there stay uncut; the rest opens, and the mesh is valid."""
+
+    class Step:
+        bounds = (np.zeros(3), np.array([0.04, 0.02, 0.012]))
+
+        @staticmethod
+        def contains(p):
+            return p[:, 2] < np.where(p[:, 0] < 0.02, 0.012, 0.008)
+
+    block = voxel_fill(Step(), 0.002)
+    line = [[0.004, 0.01, 0.012], [0.018, 0.01, 0.012], [0.022, 0.01, 0.008], [0.036, 0.01, 0.008]]
+    cut = incise(block, Incision(line, depth=0.005))
+    assert cut.dropped_faces > 0 and cut.cut_faces > 0
+    assert len(cut.left_face) == len(cut.right_face) > 0
+    straight = incise(block, Incision([[0.004, 0.01, 0.012], [0.018, 0.01, 0.012]], depth=0.005))
+    assert straight.dropped_faces == 0
 
 
 @pytest.mark.parametrize("incision, message", [

@@ -17,6 +17,9 @@ The cut follows the mesh's own faces: no tet is split, so the mesh keeps its qua
    form one or more groups; each group beyond the first gets a copy of the vertex. Vertices where the cut
    ends inside the tissue (the crack front: the bottom of the cut and ends that do not reach the surface)
    keep one group and are not copied, so both cut faces become open wound faces that meet at the front.
+   Where the split would leave a non-manifold boundary (a staircase cut touching itself or the outer surface
+   along an edge or at a vertex, e.g. under a polyline over a step), the cut faces at those vertices are left
+   uncut and the split redone (``dropped_faces``).
 4. **Gap.** With ``gap > 0`` the wound is opened in the rest shape: the copies on either side move by
    ``-+ gap/2 * w * S`` with ``w = min(1, distance to the crack front / d')`` (a V that closes at the front;
    ``d'`` is ``d``, or the farthest copy's distance where the mesh's faces stop the cut short of ``d``),
@@ -94,6 +97,8 @@ class IncisedMesh:
             crack front excluded (it belongs to both).
         crack_front: ``(f,) int32`` vertices where the two faces meet (not copied).
         cut_faces: number of interior faces cut.
+        dropped_faces: faces next to the ribbon left uncut because cutting them made the boundary non-manifold
+            (a staircase cut touching itself or the outer surface along an edge or at a vertex).
     """
 
     mesh: TetMesh
@@ -102,6 +107,7 @@ class IncisedMesh:
     right_face: np.ndarray
     crack_front: np.ndarray
     cut_faces: int
+    dropped_faces: int
 
 
 def closest_surface_points(points: np.ndarray, vertices: np.ndarray, triangles: np.ndarray) -> tuple[np.ndarray,
@@ -275,6 +281,7 @@ def incise(mesh: TetMesh, incision: Incision, tolerance: float | None = None, al
     # surface, or two parts of a staircase cut touching at a vertex), leave the cut faces there uncut and redo.
     local_a = np.argmax(tets[tet_a][:, :, None] == face_v[:, None, :], axis=1)  # (F, 3)
     local_b = np.argmax(tets[tet_b][:, :, None] == face_v[:, None, :], axis=1)
+    selected = int(is_cut.sum())
     while True:
         new_tets, source_vertex = _split(tets, n, tet_a, tet_b, local_a, local_b, ~is_cut)
         bad = source_vertex[_nonmanifold_vertices(new_tets, len(source_vertex))]
@@ -319,7 +326,7 @@ def incise(mesh: TetMesh, incision: Incision, tolerance: float | None = None, al
                 f"about the element size next to the cut ({np.median(size[is_cut]):.3g} m)"
             ) from exc
     left, right, front, source_vertex = (np.asarray(a, dtype=np.int32) for a in (left, right, front, source_vertex))
-    return IncisedMesh(result, source_vertex, left, right, front, int(is_cut.sum()))
+    return IncisedMesh(result, source_vertex, left, right, front, int(is_cut.sum()), selected - int(is_cut.sum()))
 
 
 def _split(tets, n, tet_a, tet_b, local_a, local_b, joined) -> tuple[np.ndarray, np.ndarray]:
