@@ -60,6 +60,16 @@ def test_partial_cut_opens_the_top_and_keeps_the_mesh_whole():
     assert np.array_equal(mesh.vertices, BOX.vertices[cut.source_vertex])
 
 
+def test_points_near_the_surface_are_moved_onto_it():
+    """Points 2 mm under the top (within the tolerance, as points taken on a smooth surface lie off a voxel
+    staircase) are moved onto it: the same cut as the exact line."""
+    line = [[0.005, W, H], [0.035, W, H]]
+    exact = incise(BOX, Incision(line, depth=0.5 * H))
+    sunk = incise(BOX, Incision(np.array(line) - [0.0, 0.0, 0.002], depth=0.5 * H))
+    assert np.allclose(sunk.points, line)
+    assert np.array_equal(sunk.mesh.tets, exact.mesh.tets) and np.array_equal(sunk.left_face, exact.left_face)
+
+
 def test_gap_opens_the_mouth_and_leaves_the_crack_front():
     gap = 0.002
     cut = incise(BOX, Incision(TOP_LINE, depth=0.5 * H, gap=gap))

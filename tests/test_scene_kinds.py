@@ -74,3 +74,16 @@ def test_bad_scene_settings_are_named(scene, message, block_file):
         scene = {**scene, "path": block_file}
     with pytest.raises(ValueError, match=message):
         load_config("suture_throw", {"scene": scene})
+
+
+def test_the_documented_mesh_example_builds_on_a_surface_file(tmp_path):
+    from suture_gym.envs.config import read_yaml
+    from suture_gym.sim.anatomy import hand_surface
+
+    hand_surface(spacing=0.008).export(tmp_path / "hand.obj")
+    overrides = read_yaml("docs/examples/mesh_suture_throw.yaml")
+    overrides["scene"]["path"] = str(tmp_path / "hand.obj")
+    sim = Simulation(load_config("suture_throw", overrides))
+    (arc,) = sim.arcs
+    assert len(arc.access_angles) == 4 and sim.gap_rest > 0.0
+    assert sim.model.tissue.tet_count > 5000  # the hand filled by the voxel backend at 5.8 mm

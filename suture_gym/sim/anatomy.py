@@ -108,7 +108,7 @@ def abdominal_wall(
         "radius_m": float(radius),
         "layers": [{"name": name, "thickness_m": thickness} for name, thickness, _ in layers],
         "tet_layers": np.bincount(layer, minlength=len(layers)).tolist(),
-        "incision": {"points_m": incision.points.tolist(), "depth_m": incision_depth, "gap_m": gap},
+        "incision": {"points_m": cut.points.tolist(), "depth_m": incision_depth, "gap_m": gap},
     }
     return _scene(cut.mesh, [m for _, _, m in layers], pinned, (0.0, 0.0, -gravity), regions, settings,
                   tet_material=layer)
@@ -265,7 +265,7 @@ def hand(
     lattice = np.unique(np.round(mesh.vertices[:, 1], 12))
     y = float(lattice[np.argmin(np.abs(lattice))])  # the grid plane nearest y = 0: flat wound faces
     x = np.linspace(incision_x[0], incision_x[1], 6)
-    points = np.stack([x, np.full_like(x, y), _top_height(mesh, x, y)], axis=1)
+    points = np.stack([x, np.full_like(x, y), surface_height(mesh, x, y)], axis=1)
     scene = resting_incised(mesh, Incision(points, depth=incision_depth, gap=gap), material, 1.5 * edge_length,
                             gravity)
     scene.settings.update({"scene": "hand", "edge_length_m": edge_length, "backend": "voxel"})
@@ -295,15 +295,16 @@ def resting_incised(mesh: TetMesh, incision: Incision, material: TissueMaterial,
     settings = {
         "scene": "resting_incised",
         "pin_height_m": pin_height,
-        "incision": {"points_m": incision.points.tolist(), "depth_m": incision.depth, "gap_m": incision.gap},
+        "incision": {"points_m": cut.points.tolist(), "depth_m": incision.depth, "gap_m": incision.gap},
     }
     supports = (np.array([[0.0, 0.0, 1.0]]), np.array([z_min]))
     return _scene(cut.mesh, material, pinned, (0.0, 0.0, -gravity), regions, settings, supports=supports)
 
 
-def _top_height(mesh: TetMesh, x: np.ndarray, y: float = 0.0) -> np.ndarray:
-    """Height (m) of the mesh's upper boundary above ``(x, y)``: the highest crossing of vertical rays just
-    either side of ``y`` (1 um off, so that a ray along a voxel grid's plane does not slip between its faces)."""
+def surface_height(mesh: TetMesh, x: np.ndarray, y: float = 0.0) -> np.ndarray:
+    """Height (m) of the mesh's upper boundary above the points ``(x (K,), y)``: the highest crossing of vertical
+    rays just either side of ``y`` (1 um off, so that a ray along a voxel grid's plane does not slip between its
+    faces); for laying an incision's polyline on the surface."""
     import trimesh
 
     surface = trimesh.Trimesh(mesh.vertices, surface_triangles(mesh.tets), process=False)

@@ -3,10 +3,10 @@
 The cut follows the mesh's own faces: no tet is split, so the mesh keeps its quality. Given the polyline
 ``P_0 .. P_{K-1}`` on the surface and a depth ``d``:
 
-1. **Frames.** Each segment ``i`` gets a tangent ``T_i``, a cutting direction ``D_i`` (into the tissue: minus
-   the area-weighted normal of the boundary triangles within the tolerance of its end points, made orthogonal
-   to ``T_i``) and a side normal ``S_i = T_i x D_i``. The cut surface is the ribbon the segments sweep along
-   ``D`` to depth ``d``.
+1. **Frames.** The points are moved to the nearest point of the mesh's boundary. Each segment ``i`` gets a
+   tangent ``T_i``, a cutting direction ``D_i`` (into the tissue: minus the area-weighted normal of the boundary
+   triangles within the tolerance of its end points, made orthogonal to ``T_i``) and a side normal
+   ``S_i = T_i x D_i``. The cut surface is the ribbon the segments sweep along ``D`` to depth ``d``.
 2. **Cut faces.** An interior face is cut when its centroid's nearest segment (nearest across ``D``, i.e. seen
    from outside) has it within the segment's length, at a depth in ``(0, d)`` and within one of the face's
    edge lengths of the ribbon, and its two tets lie on opposite sides of the ribbon (each tet's side: the sign
@@ -99,6 +99,8 @@ class IncisedMesh:
         cut_faces: number of interior faces cut.
         dropped_faces: faces next to the ribbon left uncut because cutting them made the boundary non-manifold
             (a staircase cut touching itself or the outer surface along an edge or at a vertex).
+        points: ``(K, 3) float64`` the polyline as cut, m: each point moved to the nearest point of the mesh's
+            boundary (a voxel mesh's staircase lies up to a cell from the surface the points were taken on).
     """
 
     mesh: TetMesh
@@ -108,6 +110,7 @@ class IncisedMesh:
     crack_front: np.ndarray
     cut_faces: int
     dropped_faces: int
+    points: np.ndarray
 
 
 def closest_surface_points(points: np.ndarray, vertices: np.ndarray, triangles: np.ndarray) -> tuple[np.ndarray,
@@ -139,6 +142,24 @@ def closest_surface_points(points: np.ndarray, vertices: np.ndarray, triangles: 
                     0.0, 1.0)
         distance = np.minimum(distance, np.linalg.norm(p - (x[None, :, a] + t[..., None] * e[None]), axis=2))
     return distance, unit
+
+
+def _closest_on_triangles(p: np.ndarray, x: np.ndarray) -> np.ndarray:
+    """``(K, 3)`` the closest point to each ``p[k]`` (m) on the triangle ``x[k]`` ``(K, 3, 3)``."""
+    n = np.cross(x[:, 1] - x[:, 0], x[:, 2] - x[:, 0])
+    n /= np.linalg.norm(n, axis=1, keepdims=True)
+    foot = p - np.einsum("kj,kj->k", p - x[:, 0], n)[:, None] * n
+    inside = np.ones(len(p), dtype=bool)
+    best, best_distance = foot.copy(), np.full(len(p), np.inf)
+    for a, b in ((0, 1), (1, 2), (2, 0)):
+        e = x[:, b] - x[:, a]
+        inside &= np.einsum("kj,kj->k", foot - x[:, a], np.cross(e, n)) <= 0.0
+        t = np.clip(np.einsum("kj,kj->k", p - x[:, a], e) / np.einsum("kj,kj->k", e, e), 0.0, 1.0)
+        q = x[:, a] + t[:, None] * e
+        d = np.linalg.norm(p - q, axis=1)
+        closer = d < best_distance
+        best[closer], best_distance[closer] = q[closer], d[closer]
+    return np.where(inside[:, None], foot, best)
 
 
 def _check_polyline(points: np.ndarray, tolerance: float) -> None:
@@ -252,6 +273,7 @@ def incise(mesh: TetMesh, incision: Incision, tolerance: float | None = None, al
             f"(tolerance {tolerance:.3g} m): the polyline must lie on the surface"
         )
     _check_polyline(points, CROSSING_TOLERANCE * tolerance)
+    points = _closest_on_triangles(points, tri_x[np.argmin(distance, axis=1)])
     area = 0.5 * np.linalg.norm(np.cross(tri_x[:, 1] - tri_x[:, 0], tri_x[:, 2] - tri_x[:, 0]), axis=1)
     near = distance <= nearest[:, None] + tolerance
     direction = -(near * area[None]) @ normal
@@ -313,6 +335,11 @@ def incise(mesh: TetMesh, incision: Incision, tolerance: float | None = None, al
     plus = np.unique(new_tets[plus_tet[:, None], plus_local])
     front = np.intersect1d(minus, plus)
     left, right = np.setdiff1d(minus, front), np.setdiff1d(plus, front)
+    if len(left) == 0:
+        raise ValueError(
+            "the incision opens no wound: every vertex of its cut lies on its edge (the cut is one element thick, "
+            "or buried): make it deeper than the elements near it, or lay the polyline on the mesh's own surface"
+        )
 
     result = TetMesh(vertices=new_vertices, tets=new_tets.astype(np.int32))
     if incision.gap > 0.0:
@@ -326,7 +353,8 @@ def incise(mesh: TetMesh, incision: Incision, tolerance: float | None = None, al
                 f"about the element size next to the cut ({np.median(size[is_cut]):.3g} m)"
             ) from exc
     left, right, front, source_vertex = (np.asarray(a, dtype=np.int32) for a in (left, right, front, source_vertex))
-    return IncisedMesh(result, source_vertex, left, right, front, int(is_cut.sum()), selected - int(is_cut.sum()))
+    return IncisedMesh(result, source_vertex, left, right, front, int(is_cut.sum()), selected - int(is_cut.sum()),
+                       points)
 
 
 def _split(tets, n, tet_a, tet_b, local_a, local_b, joined) -> tuple[np.ndarray, np.ndarray]:
