@@ -10,9 +10,9 @@ The cut follows the mesh's own faces: no tet is split, so the mesh keeps its qua
 2. **Cut faces.** An interior face is cut when its centroid's nearest segment (nearest across ``D``, i.e. seen
    from outside) has it within the segment's length, at a depth in ``(0, d)`` and within one of the face's
    edge lengths of the ribbon, and its two tets lie on opposite sides of the ribbon (each tet's side: the sign
-   of ``S`` at its centroid in its own nearest segment's frame): the boundary between the tets on either side,
-   a staircase at the element size where the mesh does not follow the ribbon (exact on a box grid cut along a
-   grid plane).
+   of ``S`` at its centroid in its own nearest segment's frame, a centroid on the ribbon counting as ``+``):
+   the boundary between the tets on either side, a staircase at the element size where the mesh does not
+   follow the ribbon (exact on a box grid cut along a grid plane).
 3. **Split.** Around each vertex, the tets that still share a face through it (the cut faces no longer count)
    form one or more groups; each group beyond the first gets a copy of the vertex. Vertices where the cut
    ends inside the tissue (the crack front: the bottom of the cut and ends that do not reach the surface)
@@ -289,7 +289,8 @@ def incise(mesh: TetMesh, incision: Incision, tolerance: float | None = None, al
     centroid = fx.mean(axis=1)
     seg, coords = _nearest_segment(centroid, origin, tangent, cut, length)
     size = np.linalg.norm(fx - np.roll(fx, 1, axis=1), axis=2).max(axis=1)
-    tet_side = np.sign(_nearest_segment(vertices[tets].mean(axis=1), origin, tangent, cut, length)[1][:, 2])
+    tet_coords = _nearest_segment(vertices[tets].mean(axis=1), origin, tangent, cut, length)[1]
+    tet_side = np.where(tet_coords[:, 2] < 0.0, -1, 1)
     side_a = tet_side[tet_a]
     is_cut = ((coords[:, 0] > 0.0) & (coords[:, 0] < 1.0) & (coords[:, 1] > 0.0) & (coords[:, 1] < incision.depth)
               & (np.abs(coords[:, 2]) < size) & (side_a * tet_side[tet_b] < 0))
