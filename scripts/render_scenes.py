@@ -1,5 +1,6 @@
 """Render a picture of each anatomical scene kind with the project's renderer (``render_mode="rgb_array"``): the
-needle through the first bite (start phase ``exited``) on the abdominal wall (WoundClosure config), the hand
+scripted expert's needle just out at the far edge of its first stitch (env seed 0, no randomisation) on the
+abdominal wall (WoundClosure config), the hand
 (SutureThrow config) and a user's mesh (``scene.kind = mesh``: the hand's surface written as an OBJ and filled
 by ``tetrahedralize_surface``, the incision given as points, as in ``docs/examples/mesh_suture_throw.yaml``).
 
@@ -23,6 +24,7 @@ configure(threads=1)
 import gymnasium as gym  # noqa: E402
 
 import suture_gym.envs  # noqa: E402, F401
+from agents.expert import ExpertPolicy  # noqa: E402
 from suture_gym.envs.config import read_yaml  # noqa: E402
 from suture_gym.render import save_png  # noqa: E402
 from suture_gym.sim.anatomy import hand_surface  # noqa: E402
@@ -52,7 +54,10 @@ def main(argv: list[str] | None = None) -> int:
                 config["scene"]["path"] = str(Path(tmp) / "hand.obj")
             config["render"] = {"width": args.width, "height": args.height}
             env = gym.make(env_id, config=config, render_mode="rgb_array")
-            env.reset(seed=0, options={"phase": "exited"})
+            obs, _ = env.reset(seed=0)
+            expert = ExpertPolicy(env)
+            while not env.unwrapped.task.state.exited:
+                obs, *_ = env.step(expert(obs))
             image = out / f"scene_{name}.png"
             save_png(env.render(), image)
             tissue = env.unwrapped.sim.model.tissue
