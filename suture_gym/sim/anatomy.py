@@ -24,7 +24,9 @@ from suture_gym.sim.scenes import STANDARD_GRAVITY, Scene, _scene
 
 #: Abdominal wall layers, top first: ``(name, thickness m, material)``; the last layer fills the rest. Skin is
 #: the suture pad's 300 kPa (the environments' default; skin is reported from tens of kPa to about 1 MPa),
-#: subcutaneous fat much softer, muscle in between: plausible contrasts, not measured values.
+#: subcutaneous fat much softer, muscle in between: plausible contrasts, not measured values. With a needle they do
+#: not work yet (one puncture threshold dents the fat by centimetres, and a softer fat under the skin tears the
+#: scripted stitch; docs/design.md, section 4): the environments' wall gives skin and fat the same modulus.
 ABDOMINAL_LAYERS: tuple[tuple[str, float, TissueMaterial], ...] = (
     ("skin", 0.003, TissueMaterial(youngs_modulus=3.0e5, poisson_ratio=0.45)),
     ("fat", 0.010, TissueMaterial(youngs_modulus=1.0e4, poisson_ratio=0.45)),
