@@ -165,8 +165,8 @@ class SceneConfig(_Section):
     wound along ``x`` on its back (``size`` unused).
     ``mesh``: the tet mesh or closed surface in the file ``path`` (m; a surface is tetrahedralised at
     ``cell_size`` by :func:`~suture_gym.sim.mesh_io.tetrahedralize_surface`, fTetWild if installed, else voxels),
-    resting on a rigid base at its lowest point (the nodes within ``cell_size`` of it pinned), with the incision
-    ``incision`` (its polyline along ``+x`` on the upper surface; the needle comes from above).
+    resting on a rigid base at its lowest point (the nodes within half a ``cell_size`` of it pinned), with the
+    incision ``incision`` (its polyline along ``+x`` on the upper surface; the needle comes from above).
     In the wound scenes (all but ``pad``) the wound's faces part along ``y``; ``gap`` is the opening at the mouth
     of an incision. ``layer_thickness`` and ``layer_stiffness`` make any scene layered by depth below its upper
     surface (:mod:`suture_gym.sim.layers`): layer ``k`` has Young's modulus ``layer_stiffness[k] *

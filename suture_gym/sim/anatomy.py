@@ -269,24 +269,27 @@ def hand(
     x = np.linspace(incision_x[0], incision_x[1], 6)
     points = np.stack([x, np.full_like(x, y), surface_height(mesh, x, y)], axis=1)
     scene = resting_incised(mesh, Incision(points, depth=incision_depth, gap=gap), material, 1.5 * edge_length,
-                            gravity)
+                            gravity, pin_low_x=True)
     scene.settings.update({"scene": "hand", "edge_length_m": edge_length, "backend": "voxel"})
     return scene
 
 
 def resting_incised(mesh: TetMesh, incision: Incision, material: TissueMaterial, pin_height: float,
-                    gravity: float = STANDARD_GRAVITY) -> Scene:
+                    gravity: float = STANDARD_GRAVITY, pin_low_x: bool = False) -> Scene:
     """Any tet mesh with an incision, resting on a rigid table at its lowest point.
 
-    The base ``z >= z_min`` is a contact, the nodes within ``pin_height`` (m) above it and those within
-    ``pin_height`` of the lowest ``x`` (a cut end, such as the hand's wrist) are pinned; gravity ``-z``.
+    The base ``z >= z_min`` is a contact, the nodes within ``pin_height`` (m) above it are pinned, and with
+    ``pin_low_x`` those within ``pin_height`` of the lowest ``x`` too (a cut end, such as the hand's wrist);
+    gravity ``-z``.
 
     Regions: ``left_wound_face``, ``right_wound_face``, ``crack_front``, ``pinned``. Settings add the incision.
     """
     cut = incise(mesh, incision)
     v = cut.mesh.vertices
     z_min = float(v[:, 2].min())
-    pinned = (v[:, 2] <= z_min + pin_height) | (v[:, 0] <= float(v[:, 0].min()) + pin_height)
+    pinned = v[:, 2] <= z_min + pin_height
+    if pin_low_x:
+        pinned |= v[:, 0] <= float(v[:, 0].min()) + pin_height
     n = cut.mesh.vertex_count
     regions = {
         "left_wound_face": _mask(n, cut.left_face),
