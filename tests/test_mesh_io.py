@@ -9,7 +9,13 @@ import pytest
 import trimesh
 
 from suture_gym.sim.mesh import box_tet_grid, signed_volumes, surface_triangles
-from suture_gym.sim.mesh_io import load_surface_mesh, read_tet_mesh, tetrahedralize_surface, write_tet_mesh
+from suture_gym.sim.mesh_io import (
+    load_surface_mesh,
+    read_tet_mesh,
+    tetrahedralize_surface,
+    voxel_fill,
+    write_tet_mesh,
+)
 
 meshio = pytest.importorskip("meshio")
 
@@ -232,3 +238,24 @@ def test_a_failing_tetwild_raises_with_its_error_output(tmp_path, monkeypatch):
     monkeypatch.setenv("PYTHONPATH", os.pathsep.join([str(fake), os.environ.get("PYTHONPATH", "")]))
     with pytest.raises(RuntimeError, match=r"(?s)fTetWild failed \(exit status 1\).*MemoryError: out of memory"):
         tetrahedralize_surface(trimesh.creation.box(extents=(0.02, 0.02, 0.02)), edge_length=0.01, backend="tetwild")
+
+
+def test_voxel_fill_bridges_cells_that_touch_only_along_an_edge():
+    """Two boxes meeting along an edge: a centre test keeps cells that share only that edge (a non-manifold
+    boundary, which the mesh validation refuses); the fill bridges them with the cells between."""
+
+    class TwoBoxes:
+        bounds = (np.zeros(3), np.array([2.0, 2.0, 1.0]))
+
+        @staticmethod
+        def contains(p):
+            first = np.all((p >= 0.0) & (p <= 1.0), axis=1)
+            second = np.all((p >= [1.0, 1.0, 0.0]) & (p <= [2.0, 2.0, 1.0]), axis=1)
+            return first | second
+
+    mesh = voxel_fill(TwoBoxes(), 0.5)
+    centres = mesh.vertices[mesh.tets].mean(axis=1)
+    cells = {tuple(c) for c in np.floor(centres / 0.5).astype(int).tolist()}
+    # 2 x 2 x 2 cells per box; the bridge is one cell on either side of the shared edge, in both layers.
+    assert len(cells) == 8 + 8 + 4 and {(1, 2, 0), (2, 1, 0), (1, 2, 1), (2, 1, 1)} <= cells
+    assert mesh.tet_count == 5 * len(cells)

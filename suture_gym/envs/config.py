@@ -30,17 +30,22 @@ from pathlib import Path
 from typing import Any, ClassVar
 
 from suture_gym.envs.registry import task_class
+from suture_gym.sim.anatomy import HAND_VOLUME
 from suture_gym.sim.coupling import CouplingParams
 from suture_gym.sim.mesh import BYTES_PER_TET_IMPLICIT, BYTES_PER_TET_XPBD, check_tet_budget
 from suture_gym.sim.model import VALIDATED_YOUNGS_MODULUS, TissueMaterial
 from suture_gym.sim.needle import NeedleShape, VirtualCoupling
 from suture_gym.sim.rod import SutureParams
 from suture_gym.sim.solver import Solver
+from suture_gym.tasks.base import ANATOMY_KINDS
 
 #: Action modes: a wrench on the needle holder, or a pose change of the holder through the virtual coupling.
 ACTION_MODES: tuple[str, ...] = ("wrench", "pose_delta")
-#: Scene kinds: one tissue pad, or two bars with a wound gap between them.
-SCENE_KINDS: tuple[str, ...] = ("pad", "wound")
+#: Scene kinds: one tissue pad; two bars with a wound gap between them; the seed paper's abdominal wall and hand
+#: (:mod:`suture_gym.sim.anatomy`); a user's mesh file with an incision (:class:`SceneConfig`).
+SCENE_KINDS: tuple[str, ...] = ("pad", "wound", *ANATOMY_KINDS)
+#: Tets per hexahedral cell (the five-tet scheme of the grids and the voxel backend).
+_VOXEL_TETS_PER_CELL = 5
 #: Goal rewards of the goal-conditioned variants.
 GOAL_REWARDS: tuple[str, ...] = ("sparse", "dense")
 #: Largest ``solver.dt``, s: ten times the 1 ms the environments are validated at (the physics checks use
@@ -127,6 +132,25 @@ class TissueConfig(TissueMaterial):
 
 
 @dataclass(frozen=True)
+class IncisionConfig(_Section):
+    """The incision of a ``mesh`` scene, and the depth of the anatomical scenes' own (module
+    :mod:`suture_gym.sim.incision`; its gap is ``scene.gap``)."""
+
+    SECTION: ClassVar[str] = "scene.incision"
+
+    points: tuple[tuple[float, float, float], ...] = ()  # m, the polyline on the surface, along +x (mesh scenes)
+    depth: float = 0.0  # m; 0: the scene's own (abdominal_wall: skin and fat, hand: two cells)
+
+    def validate(self, path: str) -> None:
+        for k, point in enumerate(self.points):
+            for j, v in enumerate(point):
+                _real(f"{path}.points[{k}][{j}]", v)
+        if len(self.points) == 1:
+            _fail(f"{path}.points", "must hold at least two points (a polyline), got one")
+        _real(f"{path}.depth", self.depth, low=0.0)
+
+
+@dataclass(frozen=True)
 class SceneConfig(_Section):
     """Tissue geometry. Frame: gravity along -z, tissue resting on a rigid base at ``z = 0`` (bottom pinned).
 
@@ -134,18 +158,36 @@ class SceneConfig(_Section):
     ``wound``: two such blocks (bars) side by side along ``y`` with ``gap`` between their facing faces
     ``y = size_y`` and ``y = size_y + gap``; the wound runs along ``x``; both end faces ``x = 0`` and
     ``x = size_x`` of each bar are pinned (paper Fig. 5). Cells are as close to ``cell_size`` as the sizes allow;
-    ``cell_size`` may not exceed any edge of the pad. The scene's tets (five per cell, both bars of a wound) are
-    counted before anything is built and refused above ``max_tets``, or when their estimated memory exceeds the
-    machine's (:func:`~suture_gym.sim.mesh.check_tet_budget`).
+    ``cell_size`` may not exceed any edge of the pad.
+    ``abdominal_wall``: the slab ``size`` = (length, width, thickness) bent over a 15 cm cylinder, an incision
+    along its crest over the middle two thirds of its length (:func:`~suture_gym.sim.anatomy.abdominal_wall`).
+    ``hand``: the hand of :func:`~suture_gym.sim.anatomy.hand`, filled by the voxel backend at ``cell_size``, a
+    wound along ``x`` on its back (``size`` unused).
+    ``mesh``: the tet mesh or closed surface in the file ``path`` (m; a surface is tetrahedralised at
+    ``cell_size`` by :func:`~suture_gym.sim.mesh_io.tetrahedralize_surface`, fTetWild if installed, else voxels),
+    resting on a rigid base at its lowest point (the nodes within half a ``cell_size`` of it pinned), with the
+    incision ``incision`` (its polyline along ``+x`` on the upper surface; the needle comes from above).
+    In the wound scenes (all but ``pad``) the wound's faces part along ``y``; ``gap`` is the opening at the mouth
+    of an incision. ``layer_thickness`` and ``layer_stiffness`` make any scene layered by depth below its upper
+    surface (:mod:`suture_gym.sim.layers`): layer ``k`` has Young's modulus ``layer_stiffness[k] *
+    tissue.youngs_modulus`` (so randomisation scales every layer), the last one filling the rest.
+    The scene's tets (five per cell, both bars of a wound; estimated for the hand; the file's for a mesh, counted
+    when it is read) are refused above ``max_tets``, or when their estimated memory exceeds the machine's
+    (:func:`~suture_gym.sim.mesh.check_tet_budget`), before anything is built.
     """
 
     SECTION: ClassVar[str] = "scene"
 
-    kind: str = "pad"  # "pad" or "wound"
-    size: tuple[float, float, float] = (0.008, 0.024, 0.008)  # m, (x, y, z) of the pad or of each bar
+    kind: str = "pad"  # one of SCENE_KINDS
+    size: tuple[float, float, float] = (0.008, 0.024, 0.008)  # m, (x, y, z) of the pad, of each bar, or the slab
     cell_size: float = 0.002  # m, target edge of the hexahedral cells (each split into five tets)
-    gap: float = 0.004  # m, wound gap between the bars (wound scenes only)
+    grid: tuple[int, int, int] = (0, 0, 0)  # cells along (x, y, z) when non-zero, instead of size / cell_size
+    gap: float = 0.004  # m, wound gap between the bars, or an incision's opening (wound scenes only)
     max_tets: int = 100_000  # most tets the scene may have (the defaults have 1-4k; 100k take ~0.8 GB implicit)
+    path: str = ""  # tet mesh or closed surface file (mesh scenes only)
+    incision: IncisionConfig = field(default_factory=IncisionConfig)
+    layer_thickness: tuple[float, ...] = ()  # m, every layer's but the deepest, top first
+    layer_stiffness: tuple[float, ...] = ()  # factors on tissue.youngs_modulus, one per layer (one more entry)
 
     def validate(self, path: str) -> None:
         _choice(f"{path}.kind", self.kind, SCENE_KINDS)
@@ -154,18 +196,51 @@ class SceneConfig(_Section):
         _real(f"{path}.cell_size", self.cell_size, low=0.0, strict_low=True)
         _real(f"{path}.gap", self.gap, low=0.0, strict_low=True)
         _count(f"{path}.max_tets", self.max_tets, 1)
-        for k, v in enumerate(self.size):
-            if self.cell_size > v:
-                _fail(f"{path}.cell_size", f"= {self.cell_size} m is larger than the pad: {path}.size[{k}] = {v} m")
+        if self.grid != (0, 0, 0):
+            for k, v in enumerate(self.grid):
+                _count(f"{path}.grid[{k}]", v, 1)
+        elif self.kind in ("pad", "wound", "abdominal_wall"):
+            for k, v in enumerate(self.size):
+                if self.cell_size > v:
+                    _fail(f"{path}.cell_size", f"= {self.cell_size} m is larger than the pad: {path}.size[{k}] = {v} m")
+        if self.kind == "mesh":
+            if not self.path:
+                _fail(f"{path}.path", "must name a tet mesh or closed surface file for scene.kind = 'mesh'")
+            if not Path(self.path).is_file():
+                _fail(f"{path}.path", f"= {self.path!r} is not a file")
+            if len(self.incision.points) < 2 or self.incision.depth <= 0.0:
+                _fail(f"{path}.incision", "needs points (two or more) and a depth > 0 for scene.kind = 'mesh'")
+        else:
+            if self.path:
+                _fail(f"{path}.path", f"is read for scene.kind = 'mesh' only, got it with kind {self.kind!r}")
+            if self.incision.points:
+                _fail(f"{path}.incision.points", f"are read for scene.kind = 'mesh' only, got kind {self.kind!r}")
+            if self.incision.depth and self.kind in ("pad", "wound"):
+                _fail(f"{path}.incision.depth", f"is not read for scene.kind = {self.kind!r}")
+        for k, v in enumerate(self.layer_thickness):
+            _real(f"{path}.layer_thickness[{k}]", v, low=0.0, strict_low=True)
+        for k, v in enumerate(self.layer_stiffness):
+            _real(f"{path}.layer_stiffness[{k}]", v, low=0.0, strict_low=True)
+        if (self.layer_thickness or self.layer_stiffness) and (
+                len(self.layer_stiffness) != len(self.layer_thickness) + 1):
+            _fail(f"{path}.layer_stiffness", f"must have one entry per layer, {len(self.layer_thickness) + 1} for "
+                  f"{len(self.layer_thickness)} layer_thickness entries, got {len(self.layer_stiffness)}")
 
     @property
     def tets(self) -> int:
-        """Tets of the scene: five per cell, times two bars for a wound."""
-        return 5 * math.prod(self.cells) * (2 if self.kind == "wound" else 1)
+        """Tets of the scene: five per cell, times two bars for a wound; for the hand an estimate (its volume over
+        the cell's, five tets each); 0 for a mesh (counted when its file is read)."""
+        if self.kind == "hand":
+            return int(_VOXEL_TETS_PER_CELL * HAND_VOLUME / self.cell_size**3)
+        if self.kind == "mesh":
+            return 0
+        return _VOXEL_TETS_PER_CELL * math.prod(self.cells) * (2 if self.kind == "wound" else 1)
 
     @property
     def cells(self) -> tuple[int, int, int]:
-        """Cell counts along (x, y, z): ``round(size / cell_size)``, at least 1."""
+        """Cell counts along (x, y, z): ``grid`` if set, else ``round(size / cell_size)``, at least 1."""
+        if self.grid != (0, 0, 0):
+            return self.grid
         return tuple(max(1, int(round(s / self.cell_size))) for s in self.size)
 
 
@@ -529,6 +604,10 @@ def _coerce(path: str, value: Any, kind: Any, current: Any) -> Any:
         return _coerce_union(path, value, typing.get_args(kind))
     if origin is tuple:
         args = typing.get_args(kind)
+        if len(args) == 2 and args[1] is Ellipsis:  # tuple[X, ...]: any length
+            if not isinstance(value, (list, tuple)):
+                _fail(path, f"must be a list, got {value!r}")
+            return tuple(_coerce(f"{path}[{k}]", v, args[0], None) for k, v in enumerate(value))
         if not isinstance(value, (list, tuple)) or len(value) != len(args):
             _fail(path, f"must be a list of {len(args)} numbers, got {value!r}")
         return tuple(_coerce(f"{path}[{k}]", v, a, None) for k, (v, a) in enumerate(zip(value, args, strict=True)))
@@ -684,6 +763,7 @@ __all__ = [
     "ActionConfig",
     "CouplingConfig",
     "EnvConfig",
+    "IncisionConfig",
     "NeedleConfig",
     "ObservationConfig",
     "PlanConfig",

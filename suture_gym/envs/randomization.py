@@ -122,7 +122,7 @@ def sample_params(config: EnvConfig, rng: np.random.Generator) -> EpisodeParams:
     return EpisodeParams(
         youngs_modulus=nominal.youngs_modulus * e_scale,
         puncture_force=nominal.puncture_force * f_scale,
-        gap=nominal.gap * (g_scale if config.scene.kind == "wound" else 1.0),
+        gap=nominal.gap * (g_scale if config.scene.kind != "pad" else 1.0),
         needle_position_offset=position,
         needle_rotation_offset=rotation,
     )

@@ -25,6 +25,7 @@ MODULES: tuple[str, ...] = (
     "suture_gym.measure.collision",
     "suture_gym.measure.render",
     "suture_gym.measure.envs",
+    "suture_gym.measure.anatomy",
 )
 
 CHECKS: dict[str, Callable[[], CheckResult]] = {}

@@ -483,3 +483,32 @@ def vertices_on_plane(vertices: np.ndarray, point, normal, tolerance: float = 1e
         raise ValueError(f"tolerance must be a non-negative distance in metres, got {tolerance!r}")
     distance = (np.asarray(vertices, dtype=np.float64) - point) @ (normal / length)
     return np.abs(distance) <= tolerance
+
+
+def points_inside(vertices: np.ndarray, tets: np.ndarray, points: np.ndarray, tolerance: float = 1e-12) -> np.ndarray:
+    """Whether each point lies in some tet (closed, barycentric coordinates >= ``-tolerance``): an exact and
+    deterministic inside test for a tet mesh (ray casting against its surface is neither at edges).
+
+    Args:
+        vertices: ``(N, 3)`` positions, m; tets: ``(T, 4)`` vertex indices; points: ``(M, 3)`` m.
+
+    Returns:
+        ``(M,) bool``.
+    """
+    from scipy.spatial import cKDTree
+
+    vertices = np.asarray(vertices, dtype=np.float64)
+    tets = np.asarray(tets, dtype=np.int64)
+    points = np.atleast_2d(np.asarray(points, dtype=np.float64))
+    x = vertices[tets]
+    centre = x.mean(axis=1)
+    reach = float(np.linalg.norm(x - centre[:, None], axis=2).max())
+    dm_inv = np.linalg.inv(np.stack([x[:, 1] - x[:, 0], x[:, 2] - x[:, 0], x[:, 3] - x[:, 0]], axis=2))
+    inside = np.zeros(len(points), dtype=bool)
+    for k, candidates in enumerate(cKDTree(centre).query_ball_point(points, reach)):
+        if not candidates:
+            continue
+        c = np.asarray(candidates)
+        b = np.einsum("tij,tj->ti", dm_inv[c], points[k] - x[c, 0])
+        inside[k] = bool(np.any((b >= -tolerance).all(axis=1) & (b.sum(axis=1) <= 1.0 + tolerance)))
+    return inside

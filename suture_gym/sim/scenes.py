@@ -39,7 +39,9 @@ class Scene:
     settings: dict = field(default_factory=dict)
 
 
-def _material_settings(material: TissueMaterial) -> dict:
+def _material_settings(material: TissueMaterial | list[TissueMaterial]) -> dict | list[dict]:
+    if isinstance(material, (list, tuple)):
+        return [_material_settings(m) for m in material]
     return {
         "youngs_modulus_pa": material.youngs_modulus,
         "poisson_ratio": material.poisson_ratio,
@@ -57,9 +59,12 @@ def _scene(
     settings: dict,
     rollers=None,
     supports=None,
+    tet_material: np.ndarray | None = None,
 ) -> Scene:
-    """Model, rest state, regions (boolean masks turned into index arrays) and settings of a scene."""
-    tissue = TissueModel.from_mesh(mesh, material, pinned=pinned, rollers=rollers, supports=supports)
+    """Model, rest state, regions (boolean masks turned into index arrays) and settings of a scene; ``material``
+    may be a list indexed by ``tet_material`` (T,) (layered tissue)."""
+    tissue = TissueModel.from_mesh(mesh, material, pinned=pinned, tet_material=tet_material, rollers=rollers,
+                                   supports=supports)
     model = Model(tissue=tissue, gravity=gravity)
     state = State(tissue=TissueState.at_rest(tissue))
     settings = {

@@ -215,6 +215,12 @@ class StepContext:
     failed: bool
 
 
+#: Scene kinds with an incision instead of two bars (:mod:`suture_gym.sim.anatomy`, a user's mesh): their stitches
+#: are planned on the built tissue (:func:`~suture_gym.tasks.geometry.plan_across_incision`).
+ANATOMY_KINDS: tuple[str, ...] = ("abdominal_wall", "hand", "mesh")
+#: Scene kinds with a wound to suture.
+WOUND_KINDS: tuple[str, ...] = ("wound", *ANATOMY_KINDS)
+
 #: The built-in tasks' version history (:attr:`Task.VERSION_HISTORY`): what they share.
 BUILTIN_VERSION_HISTORY = (
     "v2 (issue 15): randomised by default (tissue stiffness x0.7-1.3, puncture force x0.8-1.25, wound gap "

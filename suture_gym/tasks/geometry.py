@@ -192,3 +192,71 @@ def plan_stitches(
         center = np.array([sx * (i + 1) / (stitches + 1), cy, sz + h])
         arcs.append(PlannedArc(center, (1.0, 0.0, 0.0), (0.0, 1.0, 0.0), radius, np.array(angles)))
     return tuple(arcs)
+
+
+def plan_across_incision(
+    points: np.ndarray,
+    inside,
+    radius: float,
+    center_height: float,
+    stitches: int,
+    samples: int = 2048,
+) -> tuple[PlannedArc, ...]:
+    """The planned arcs across an incision on any tissue, with the crossings found on the tissue itself.
+
+    Stitch ``i`` sits at the arc length ``L (i + 1) / (stitches + 1)`` of the incision's polyline (length ``L``):
+    its circle lies in the plane normal to the polyline there (``axis`` its direction, ``u = z x axis``
+    normalised, so ``u`` points to the wound's right face when the incision runs along ``+x``), centred
+    ``center_height * radius`` above the polyline point along ``v = axis x u`` (up). The surface crossings are
+    where ``inside`` changes along the circle's lower half (``samples`` angles, each refined by bisection to
+    1e-9 rad): entry, left face, right face, exit.
+
+    Args:
+        points: ``(K, 3)`` the incision polyline on the surface, m (the middle of the wound's mouth), heading
+            along ``+x`` more than along ``z`` (the needle comes from above, ``+z``).
+        inside: callable ``(M, 3) m -> (M,) bool``: whether points lie inside the tissue at rest.
+        radius: needle curvature radius, m; center_height: in (0, 1); stitches: >= 1.
+
+    Raises:
+        ValueError: when a circle does not cross the tissue surface exactly four times (the wound too shallow
+            for the needle's arc, or the arc leaving the tissue elsewhere), naming the stitch and the crossings.
+    """
+    if not 0.0 < center_height < 1.0:
+        raise ValueError(f"center_height must lie in (0, 1), got {center_height!r}")
+    points = np.asarray(points, dtype=np.float64)
+    seg = np.diff(points, axis=0)
+    s = np.concatenate([[0.0], np.cumsum(np.linalg.norm(seg, axis=1))])
+    phi = np.linspace(-math.pi, 0.0, samples)
+    arcs = []
+    for i in range(stitches):
+        target = s[-1] * (i + 1) / (stitches + 1)
+        k = min(int(np.searchsorted(s, target, side="right")) - 1, len(seg) - 1)
+        on = points[k] + (target - s[k]) / (s[k + 1] - s[k]) * seg[k]
+        axis = _unit("incision direction", seg[k])
+        u = _unit("incision side", np.cross([0.0, 0.0, 1.0], axis))
+        up = np.cross(axis, u)
+        center = on + center_height * radius * up
+
+        def circle(angles, center=center, u=u, up=up):
+            angles = np.atleast_1d(angles)
+            return center + radius * (np.cos(angles)[:, None] * u + np.sin(angles)[:, None] * up)
+
+        state = np.asarray(inside(circle(phi)), dtype=bool)
+        change = np.flatnonzero(state[1:] != state[:-1])
+        if len(change) != 4 or state[0]:
+            raise ValueError(
+                f"stitch {i}: the needle's circle (radius {radius:.4g} m, centre {center.round(5).tolist()} m) "
+                f"crosses the tissue surface {len(change)} times at rest, not 4 (in, out of the left wound face, "
+                "into the right one, out): the wound is too shallow or narrow for the arc, or the arc leaves "
+                "the tissue elsewhere; change plan.center_height or the incision"
+            )
+        angles = []
+        for c in change:
+            lo, hi = phi[c], phi[c + 1]
+            first = state[c]
+            while hi - lo > 1e-9:
+                mid = 0.5 * (lo + hi)
+                lo, hi = (mid, hi) if bool(inside(circle(mid))[0]) == first else (lo, mid)
+            angles.append(0.5 * (lo + hi))
+        arcs.append(PlannedArc(center, axis, u, radius, np.array(angles)))
+    return tuple(arcs)

@@ -4,7 +4,7 @@ from __future__ import annotations
 
 import numpy as np
 
-from suture_gym.tasks.base import THREAD_VERSION_HISTORY, Observables, Task
+from suture_gym.tasks.base import THREAD_VERSION_HISTORY, WOUND_KINDS, Observables, Task
 
 
 class SutureThrow(Task):
@@ -31,7 +31,7 @@ class SutureThrow(Task):
         "observation": {"suture_samples": 4},
         "reward": {"failure": 20.0},
     }
-    SCENE_KINDS = ("wound",)
+    SCENE_KINDS = WOUND_KINDS
     NEEDS_THREAD = True
     TERMS = ("path", "progress", "entry", "exit", "puncture", "thread", "success", "failure", "tissue_force",
              "action")

@@ -6,7 +6,7 @@ import numpy as np
 
 from suture_gym.sim.rod import RodModel, RodState
 from suture_gym.sim.scenes import tent_rod
-from suture_gym.tasks.base import THREAD_VERSION_HISTORY, Observables, Task
+from suture_gym.tasks.base import THREAD_VERSION_HISTORY, WOUND_KINDS, Observables, Task
 from suture_gym.tasks.geometry import PlannedArc
 
 #: Distance outside the first entry at which the thread's free end starts, m.
@@ -36,7 +36,7 @@ class WoundClosure(Task):
         "observation": {"suture_samples": 4},
         "reward": {"failure": 30.0},
     }
-    SCENE_KINDS = ("wound",)
+    SCENE_KINDS = WOUND_KINDS
     NEEDS_THREAD = True
     #: The running suture's three stitches (about 7 rad of turning each) must fit, with their transits and the
     #: final tightening pull, into the 25 s time limit: the surgeon turns and pulls twice as fast.
