@@ -88,8 +88,8 @@ def test_human_render_mode_streams_vertex_updates(monkeypatch):
     assert view is not None and view.port > 0
     mesh = view.scene.nodes["tissue"]
     push = np.zeros(6, dtype=np.float32)
-    push[2] = -1.0  # press the needle down into the tissue: the surface deforms
-    for _ in range(60):
+    push[2] = -0.3  # press the needle down into the tissue (1.5 N; at 5 N it tears within 30 steps): it deforms
+    for _ in range(40):
         _, _, terminated, _, info = env.step(push)
         assert not terminated
     assert env.render() is None
@@ -108,12 +108,13 @@ def test_human_render_mode_streams_vertex_updates(monkeypatch):
 
 
 @needs_viser
-@pytest.mark.parametrize("env_id", list(ENV_IDS) + list(GOAL_ENV_IDS))
+@pytest.mark.parametrize("env_id", [i for i in (*ENV_IDS, *GOAL_ENV_IDS) if i.startswith("SutureGym/")])
 def test_every_id_has_the_human_render_mode(env_id):
     env = gym.make(env_id, render_mode="human", config={"render": {"viewer_port": 0}})
     env.reset(seed=1)
     for _ in range(3):
-        env.step(env.action_space.sample())
+        if env.step(env.action_space.sample())[2]:
+            break
     nodes = env.unwrapped._live.scene.nodes
     thread = env.unwrapped.sim.state.suture is not None
     assert {"tissue", "needle", "markers", "planned_arcs", "reaction_force"} <= set(nodes)
