@@ -5,3 +5,14 @@ from pathlib import Path
 
 os.environ.setdefault("NUMBA_CACHE_DIR", str(Path(__file__).resolve().parents[1] / ".numba_cache"))
 os.environ.setdefault("NUMBA_NUM_THREADS", "2")
+
+
+def import_script(monkeypatch, name: str):
+    """The module of ``scripts/<name>.py``, imported as its command line would run it (the scripts' ``configure``
+    sets the thread counts in ``os.environ``: they are set here first, so the test restores them)."""
+    import importlib
+
+    for var in ("NUMBA_NUM_THREADS", "OMP_NUM_THREADS", "OPENBLAS_NUM_THREADS", "MKL_NUM_THREADS"):
+        monkeypatch.setenv(var, "1")
+    monkeypatch.syspath_prepend(str(Path(__file__).resolve().parents[1] / "scripts"))
+    return importlib.import_module(name)

@@ -2,21 +2,18 @@
 no exception, non-finite value, contract violation or divergence; its exit status when something breaks; and
 the reproducer it records for every event, which replays the event alone."""
 
-import importlib
 import json
 from pathlib import Path
 
 import pytest
+from conftest import import_script
 
 SCRIPTS = Path(__file__).resolve().parents[1] / "scripts"
 
 
 @pytest.fixture
 def fuzz(monkeypatch):
-    for var in ("NUMBA_NUM_THREADS", "OMP_NUM_THREADS", "OPENBLAS_NUM_THREADS", "MKL_NUM_THREADS"):
-        monkeypatch.setenv(var, "1")  # the script's configure() sets them; restored after the test
-    monkeypatch.syspath_prepend(str(SCRIPTS))
-    return importlib.import_module("fuzz")
+    return import_script(monkeypatch, "fuzz")
 
 
 def test_a_short_fuzz_run_finds_nothing(fuzz, capsys):

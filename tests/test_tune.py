@@ -2,16 +2,14 @@
 first run's trials and samples new hyperparameters; bad arguments are named. Tiny budgets (64 env steps of
 20-step episodes per trial)."""
 
-import importlib
 import json
-from pathlib import Path
 
 import pytest
+from conftest import import_script
 
 pytest.importorskip("optuna")
 pytest.importorskip("stable_baselines3")
 
-SCRIPTS = Path(__file__).resolve().parents[1] / "scripts"
 TINY = ["--n-timesteps", "64", "--n-evaluations", "2", "--eval-episodes", "1", "--no-progress", "--json",
         "--hyperparams", "n_envs=1", "n_steps=32", "batch_size=32", "n_epochs=1", "policy_kwargs={net_arch: [16]}",
         "behaviour_cloning=null", "env_kwargs={max_episode_steps: 20}"]
@@ -19,10 +17,7 @@ TINY = ["--n-timesteps", "64", "--n-evaluations", "2", "--eval-episodes", "1", "
 
 @pytest.fixture
 def tune(monkeypatch):
-    for var in ("NUMBA_NUM_THREADS", "OMP_NUM_THREADS", "OPENBLAS_NUM_THREADS", "MKL_NUM_THREADS"):
-        monkeypatch.setenv(var, "1")  # the script's configure() sets them; restored after the test
-    monkeypatch.syspath_prepend(str(SCRIPTS))
-    return importlib.import_module("tune")
+    return import_script(monkeypatch, "tune")
 
 
 def test_a_study_is_stored_in_sqlite_and_resumed(tune, tmp_path, capsys):
