@@ -135,11 +135,13 @@ def _in_access_piece(i, n_access, access_node, access_weight):
 
 @njit(cache=True)
 def build_node_rows(sigma, strand_q, sdist, strand_tri, row_band, paths, pathnodes, tet_indices, access, n_access,
-                    out_status, out_path, rows):  # fmt: skip
+                    suture_skip, out_status, out_path, rows):  # fmt: skip
     """Node states and constraint rows of every strand node (module docstring, detection step 8): the HEAD of
     an open path none; nodes matched to a path (``sigma_exit <= sigma < sigma_entry``) a node-path row
     (:func:`_path_row`); others a node-triangle row with their closest triangle when their signed distance
-    is below ``row_band`` (m), unless they carry one of the ``n_access`` node-access rows.
+    is below ``row_band`` (m), unless they carry one of the ``n_access`` node-access rows or are suture nodes
+    (from strand index ``suture_skip[0]``) whose closest triangle lies on a support (``suture_skip[1]`` (F,)
+    bool, ``CouplingModel.tri_on_support``: the base is the suture's obstacle there).
 
     Args:
         sigma: ``(M,)`` m. strand_q: ``(M, 3)`` m. sdist: ``(M,)`` m. strand_tri: ``(M,)`` closest triangles.
@@ -172,6 +174,8 @@ def build_node_rows(sigma, strand_q, sdist, strand_tri, row_band, paths, pathnod
                       tet_indices, rows)  # fmt: skip
             continue
         if strand_tri[i] < 0 or not (sdist[i] < row_band) or _in_access_piece(i, n_access, access[0], access[1]):
+            continue
+        if i >= suture_skip[0] and suture_skip[1][strand_tri[i]]:
             continue
         row_kind[i] = ROW_TRIANGLE
         row_tri[i] = strand_tri[i]
@@ -327,13 +331,9 @@ def coupling_detect(
     pathnodes = (state.pathnode_tet, state.pathnode_bary, work.pathnode_q, work.pathnode_tangent)
     build_node_rows(
         model.strand_sigma, strand_q, state.strand_sdist, state.strand_tri, band, paths, pathnodes,
-        tissue.tet_indices, work.access_rows, work.access_count, state.strand_status, state.strand_path,
-        work.node_rows,
+        tissue.tet_indices, work.access_rows, work.access_count, (model.needle_node_count, model.tri_on_support),
+        state.strand_status, state.strand_path, work.node_rows,
     )  # fmt: skip
-    nn = model.needle_node_count
-    under = (work.row_kind[nn:] == ROW_TRIANGLE) & model.tri_on_support[work.row_tri[nn:]]
-    work.row_kind[nn:][under] = ROW_NONE
-    work.row_tri[nn:][under] = -1
     _wall_and_anchor_rows(model, state, work)
     if strand_q_start is not None and model.tri_rigid.any():
         rigid_crossings(model, work, tissue_q, strand_q_start, strand_q)
