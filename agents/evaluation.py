@@ -38,6 +38,9 @@ class Episode:
 
 
 #: Why an episode ended, in the order :func:`episode_end` checks the last step's ``info``.
+#: Policy names that are not saved models: a random policy, the scripted expert and its feedback variant
+#: (:class:`agents.expert.FeedbackExpert`, DAgger's oracle).
+SCRIPTED = ("random", "expert", "feedback_expert")
 ENDS = ("success", "diverged", "tear", "out_of_workspace", "missed", "time_limit", "terminated")
 
 
@@ -54,12 +57,13 @@ def episode_end(info: dict, terminated: bool, truncated: bool) -> str:
 
 def make_policy(policy: str, env: gym.Env, seed: int,
                 vecnormalize: str | Path | None = None) -> Callable[[object], np.ndarray]:
-    """A callable ``obs -> action`` for ``policy``: ``random``, ``expert`` or a path to an SB3 ``.zip``.
+    """A callable ``obs -> action`` for ``policy``: ``random``, ``expert``, ``feedback_expert`` or a path to an
+    SB3 ``.zip``.
 
     ``vecnormalize`` is the path of the ``VecNormalize`` statistics a saved model's observations are normalised
     with (see :func:`model_vecnormalize`); None: the model sees raw observations.
     """
-    if policy in ("random", "expert") and vecnormalize is not None:
+    if policy in SCRIPTED and vecnormalize is not None:
         raise ValueError(f"VecNormalize statistics apply to a saved model, not to policy {policy!r}")
     if policy == "random":
         space = env.action_space
@@ -69,6 +73,10 @@ def make_policy(policy: str, env: gym.Env, seed: int,
         from agents.expert import ExpertPolicy
 
         return ExpertPolicy(env)
+    if policy == "feedback_expert":
+        from agents.expert import FeedbackExpert
+
+        return FeedbackExpert(env)
     return _saved_model_policy(Path(policy), env, vecnormalize)
 
 
@@ -87,7 +95,7 @@ def model_vecnormalize(policy: str, vecnormalize: str | Path | None = None) -> P
         if not path.is_file():
             raise FileNotFoundError(f"VecNormalize statistics {str(path)!r} do not exist")
         return path
-    if policy in ("random", "expert"):
+    if policy in SCRIPTED:
         return None
     from agents.training import _sibling
 
@@ -161,7 +169,7 @@ def trained_env_kwargs(policy: str) -> dict:
     resolved); ``{}`` for ``random``, ``expert`` or a model without one."""
     from agents.hyperparams import resolve
 
-    if policy in ("random", "expert"):
+    if policy in SCRIPTED:
         return {}
     hyperparams = run_config(policy).get("hyperparams")
     if not hyperparams:

@@ -5,8 +5,9 @@ Conventions (as in rl-baselines3-zoo, without its ``eval()``):
 - ``n_timesteps`` (int, env steps), ``policy`` (SB3 policy name), ``n_envs`` (int), ``normalize`` (bool or
   a mapping of ``VecNormalize`` keyword arguments), ``env_kwargs`` (mapping passed to ``gym.make``; a relative
   ``config`` path is taken from the repository root), ``behaviour_cloning`` (mapping: warm start from the
-  scripted expert, see :data:`BC_KEYS` and :mod:`agents.imitation`), and any keyword argument of the algorithm's
-  constructor.
+  scripted expert, see :data:`BC_KEYS` and :mod:`agents.imitation`), ``dagger`` (mapping, ``configs/agents/dagger.yml``
+  only: see :data:`agents.dagger.DAGGER_KEYS`), and any keyword argument of the algorithm's constructor (PPO's for
+  ``dagger``, whose learner is a PPO model).
 - Schedules are strings ``lin_<value>`` (linear decay from ``value`` to 0 over training).
 - ``policy_kwargs`` is a mapping; ``activation_fn`` names a torch module (``tanh``, ``relu``, ``elu``,
   ``leaky_relu``); ``net_arch`` is a list or a dict ``{pi: [...], vf: [...]}`` / ``{pi: [...], qf: [...]}``.
@@ -26,7 +27,7 @@ ROOT = Path(__file__).resolve().parents[1]
 CONFIG_DIR = ROOT / "configs" / "agents"
 
 #: Keys consumed by the training script rather than passed to the algorithm.
-SCRIPT_KEYS = ("n_timesteps", "policy", "n_envs", "normalize", "env_kwargs", "behaviour_cloning")
+SCRIPT_KEYS = ("n_timesteps", "policy", "n_envs", "normalize", "env_kwargs", "behaviour_cloning", "dagger")
 #: Keys of ``behaviour_cloning`` and their defaults: expert episodes recorded (env seeds ``seed + 2000 ...``),
 #: passes over them, minibatch size, Adam step size, and ``dataset``: the id of a Minari dataset of the same env
 #: id to clone instead of recording (:func:`agents.imitation.load_minari_demos`; looked up in
@@ -72,6 +73,10 @@ def resolve(hyperparams: dict[str, Any]) -> tuple[dict[str, Any], dict[str, Any]
         raise ValueError("agent config needs 'n_timesteps' (total env steps)")
     if "behaviour_cloning" in script:
         script["behaviour_cloning"] = _behaviour_cloning(script["behaviour_cloning"])
+    if "dagger" in script:
+        from agents.dagger import dagger_settings
+
+        script["dagger"] = dagger_settings(script["dagger"])
     env_kwargs = script.get("env_kwargs") or {}
     if not isinstance(env_kwargs, dict):
         raise ValueError(f"env_kwargs must be a mapping, got {type(env_kwargs).__name__}")

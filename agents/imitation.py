@@ -116,7 +116,7 @@ def load_minari_demos(dataset, root: str | Path | None = None) -> dict[str, np.n
 
 
 def behaviour_clone(model, demos: dict[str, np.ndarray], epochs: int = 30, batch_size: int = 256,
-                    learning_rate: float = 1e-3, seed: int = 0) -> dict[str, Any]:
+                    learning_rate: float = 1e-3, seed: int = 0, update_statistics: bool = True) -> dict[str, Any]:
     """Fit ``model``'s policy mean and value head to ``demos`` in place (see the module docstring).
 
     Args:
@@ -128,6 +128,8 @@ def behaviour_clone(model, demos: dict[str, np.ndarray], epochs: int = 30, batch
         batch_size: minibatch size (>= 1).
         learning_rate: Adam step size.
         seed: shuffles the minibatches.
+        update_statistics: update a ``VecNormalize``'s statistics with ``demos`` first (False: normalise with
+            them as they are, e.g. when ``demos`` re-presents data they were already updated with).
 
     Returns:
         ``{steps, episodes, epochs, action_mse, value_explained_variance}``: the demonstrations' size, the final
@@ -153,7 +155,7 @@ def behaviour_clone(model, demos: dict[str, np.ndarray], epochs: int = 30, batch
 
     gamma = float(model.gamma)
     env = model.get_env()
-    if isinstance(env, VecNormalize):
+    if isinstance(env, VecNormalize) and update_statistics:
         if env.norm_obs:
             env.obs_rms.update(obs)
         if env.norm_reward:
@@ -162,6 +164,7 @@ def behaviour_clone(model, demos: dict[str, np.ndarray], epochs: int = 30, batch
                 for r in rewards[start:end]:
                     running = running * env.gamma + r
                     env.ret_rms.update(np.array([running]))
+    if isinstance(env, VecNormalize):
         obs = env.normalize_obs(obs)
         rewards = env.normalize_reward(rewards)
     returns = discounted_returns(rewards, starts, gamma).astype(np.float32)

@@ -29,13 +29,15 @@ import yaml
 
 from agents.hyperparams import load_hyperparams, resolve
 
-ALGOS = ("ppo", "sac", "tqc", "a2c", "td3")
+ALGOS = ("ppo", "sac", "tqc", "a2c", "td3", "dagger")
 
 
 def algo_class(algo: str):
-    """The SB3 (or sb3-contrib) class for ``algo``."""
+    """The SB3 (or sb3-contrib) class for ``algo``; ``dagger`` (:mod:`agents.dagger`) trains a PPO model."""
     if algo not in ALGOS:
         raise ValueError(f"unknown algo {algo!r}; expected one of {ALGOS}")
+    if algo == "dagger":
+        algo = "ppo"
     if algo == "tqc":
         from sb3_contrib import TQC
 
@@ -106,8 +108,11 @@ def train(
     """Train ``algo`` on ``env_id`` and write the run directory described in the module docstring.
 
     Args:
-        algo: ``ppo``, ``sac``, ``tqc``, ``a2c`` or ``td3``; hyperparameters come from
-            ``configs/agents/<algo>.yml`` (or ``hyperparams``, a mapping in the same format).
+        algo: ``ppo``, ``sac``, ``tqc``, ``a2c``, ``td3`` or ``dagger`` (:mod:`agents.dagger`: imitation of
+            the scripted surgeon on the learner's own states; ``eval_freq``, ``eval_episodes`` and
+            ``checkpoint_freq`` do not apply, its learner-alone iterations are its evaluations and every
+            iteration is checkpointed); hyperparameters come from ``configs/agents/<algo>.yml`` (or
+            ``hyperparams``, a mapping in the same format).
         env_id: registered Gymnasium id.
         seed: seeds the algorithm, the training envs (``seed + i``) and the evaluation env (``seed + 1000``).
         out_dir: parent of the run directory ``<out_dir>/<algo>_<EnvName>_s<seed>``.
@@ -135,6 +140,18 @@ def train(
     run_dir = Path(out_dir) / run_name(algo, env_id, seed)
     (run_dir / "checkpoints").mkdir(parents=True, exist_ok=True)
     _write_config(run_dir, algo, env_id, seed, total, raw, resume)
+
+    if algo == "dagger":
+        if resume is not None:
+            raise ValueError("a DAgger run cannot be resumed; fine-tune its model with PPO instead")
+        from agents.dagger import train_dagger
+
+        summary = train_dagger(env_id, seed, run_dir, total, script, kwargs, progress_bar, verbose)
+        (run_dir / "summary.json").write_text(json.dumps(summary, indent=2))
+        return TrainResult(run_dir, run_dir / "final_model.zip", summary["timesteps"], summary["wall_s"],
+                           summary["last_eval_mean_return"], summary["last_eval_success_rate"])
+    if "dagger" in script:
+        raise ValueError(f"the 'dagger' settings belong to configs/agents/dagger.yml, not to {algo}'s config")
 
     normalize = script.get("normalize", False)
     env, eval_env = make_train_envs(env_id, n_envs, seed, env_kwargs, normalize)

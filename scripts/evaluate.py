@@ -24,13 +24,14 @@ from _common import configure
 
 configure(threads=1)
 
-from agents.evaluation import evaluate  # noqa: E402
+from agents.evaluation import SCRIPTED, evaluate  # noqa: E402
 
 
 def main(argv: list[str] | None = None) -> int:
     parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     parser.add_argument("--env", default="SutureGym/NeedleInsert-v2", help="Gymnasium env id")
-    parser.add_argument("--policy", default="random", help="'random', 'expert' or a path to a model .zip")
+    parser.add_argument("--policy", default="random",
+                        help="'random', 'expert', 'feedback_expert' (DAgger's oracle) or a path to a model .zip")
     parser.add_argument("--episodes", type=int, default=20)
     parser.add_argument("--seed", type=int, default=0, help="episode k uses env seed seed + k")
     parser.add_argument("--config", default=None,
@@ -47,7 +48,7 @@ def main(argv: list[str] | None = None) -> int:
         parser.error(f"--episodes must be positive, got {args.episodes}")
 
     env_kwargs = {"config": args.config} if args.config is not None else None
-    if args.vecnormalize is not None and args.policy in ("random", "expert"):
+    if args.vecnormalize is not None and args.policy in SCRIPTED:
         parser.error(f"--vecnormalize applies to a saved model, not to --policy {args.policy}")
     summary = evaluate(args.env, args.policy, args.episodes, seed=args.seed, env_kwargs=env_kwargs,
                        progress=not args.json, records_path=args.records, vecnormalize=args.vecnormalize)

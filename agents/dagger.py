@@ -1,0 +1,223 @@
+"""DAgger (Ross, Gordon and Bagnell, AISTATS 2011) with the scripted surgeon as the oracle.
+
+Behaviour cloning trains on the states the expert visits; the cloned policy drifts off them and meets states
+it never saw, where its errors compound (a needle a millimetre off the planned circle after a few hundred
+steps of a 1,300-step stitch). DAgger rolls the learner out, asks the oracle what it would have done in every
+state the learner visited, adds those labels to the data and refits: the policy is trained on its own state
+distribution. The oracle must label any state, so it is :class:`agents.expert.FeedbackExpert` (the expert's
+turn closed on the measured tip), not the clock-driven :class:`~agents.expert.ExpertPolicy`.
+
+Iteration ``i`` (0-based) runs ``episodes_per_iteration`` episodes in which each step's executed action is the
+oracle's with probability ``beta * beta_decay ** i`` and the learner's (deterministic mean) otherwise; every
+visited observation is stored with the oracle's label. After each iteration the policy's mean is refitted on all
+the data so far (:func:`agents.imitation.behaviour_clone`, which also fits the value head to the rollouts'
+returns, so PPO can fine-tune the result). With the default ``beta_decay: 0`` iteration 0 is the expert's
+demonstrations and every later iteration is the learner alone: its episodes are then an evaluation of the
+policy fitted one iteration before, on env seeds no other iteration uses, and they are the run's learning curve.
+
+The learner is an SB3 :class:`~stable_baselines3.PPO` model (``MlpPolicy``), saved like every other run of
+:func:`agents.training.train` (``final_model.zip``, ``final_vecnormalize.pkl``, ``checkpoints/``,
+``eval/evaluations.npz``, ``learning_curve.png``, ``summary.json``), so ``scripts/evaluate.py`` and PPO's
+``--resume`` read it. ``best_model.zip`` is the checkpoint whose learner-alone iteration succeeded most often
+(the later one on ties).
+
+Why by hand: the ``imitation`` library's DAgger pins its own SB3 and Gymnasium versions (see
+:mod:`agents.imitation`), and the loop is short.
+"""
+
+from __future__ import annotations
+
+import json
+import math
+import shutil
+import sys
+import time
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+#: Keys of a config's ``dagger`` mapping and their defaults: iterations (>= 1), episodes per iteration (>= 1),
+#: the oracle's share of the executed actions in iteration 0 (``beta``, in [0, 1]) and its decay per iteration
+#: (``beta_decay``, in [0, 1]), the refit's passes over all data (``epochs``), minibatch size and Adam step, and
+#: the oracle's ``lead`` (rad, :class:`agents.expert.FeedbackExpert`).
+DAGGER_KEYS: dict[str, Any] = {"iterations": 8, "episodes_per_iteration": 10, "beta": 1.0, "beta_decay": 0.0,
+                               "epochs": 10, "batch_size": 256, "learning_rate": 1e-3, "lead": 0.015}
+#: Env seeds of a run with seed ``s``: episode ``k`` (counted over all iterations) uses ``SEED_BASE + 10_000 s +
+#: k``, clear of the evaluation seeds (``scripts/evaluate.py`` starts at 0, ``make run`` at 10,000).
+SEED_BASE = 100_000
+
+
+def dagger_settings(value: Any) -> dict[str, Any]:
+    """``value`` (a config's ``dagger`` mapping) completed with :data:`DAGGER_KEYS`' defaults and checked.
+
+    Raises:
+        ValueError: not a mapping, an unknown key, or a value out of range (the message names it).
+    """
+    if not isinstance(value, dict):
+        raise ValueError(f"dagger must be a mapping of {sorted(DAGGER_KEYS)}, got {value!r}")
+    unknown = sorted(set(value) - set(DAGGER_KEYS))
+    if unknown:
+        raise ValueError(f"dagger has unknown keys {unknown}; known: {sorted(DAGGER_KEYS)}")
+    out = {**DAGGER_KEYS, **value}
+    for key in ("iterations", "episodes_per_iteration", "epochs", "batch_size"):
+        if isinstance(out[key], bool) or not isinstance(out[key], int) or out[key] < 1:
+            raise ValueError(f"dagger.{key} must be an integer >= 1, got {out[key]!r}")
+    for key in ("beta", "beta_decay"):
+        if isinstance(out[key], bool) or not isinstance(out[key], (int, float)) or not 0.0 <= out[key] <= 1.0:
+            raise ValueError(f"dagger.{key} must lie in [0, 1], got {out[key]!r}")
+    for key in ("learning_rate", "lead"):
+        if isinstance(out[key], bool) or not isinstance(out[key], (int, float)) or not (
+                math.isfinite(out[key]) and out[key] > 0.0):
+            raise ValueError(f"dagger.{key} must be > 0, got {out[key]!r}")
+    return out
+
+
+def train_dagger(env_id: str, seed: int, run_dir: Path, total: int, script: dict[str, Any], kwargs: dict[str, Any],
+                 progress_bar: bool = True, verbose: int = 0) -> dict[str, Any]:
+    """Run DAgger on ``env_id`` into ``run_dir`` (see the module docstring); returns the run's summary.
+
+    Args:
+        env_id: registered SutureGym id with flat observations.
+        seed: seeds the policy's initialisation, the executed-action draws and the env seeds
+            (:data:`SEED_BASE`).
+        run_dir: the run directory (exists, ``config.yaml`` already written by :func:`agents.training.train`).
+        total: env-step budget: no iteration starts once it is spent (an iteration started runs to its end).
+        script: the config's script settings (:func:`agents.hyperparams.resolve`): ``policy``, ``normalize``,
+            ``env_kwargs`` and the ``dagger`` mapping (:func:`dagger_settings`).
+        kwargs: the PPO constructor's keyword arguments (``policy_kwargs``, and those a later PPO fine-tuning
+            would use).
+        progress_bar: a tqdm bar over env steps on stderr.
+        verbose: 1 prints one line per iteration on stderr.
+
+    Returns:
+        ``{timesteps, wall_s, iterations: [{iteration, beta, episodes, steps, success_rate, mean_return,
+        data_steps, action_mse, env_seeds}], best_iteration, last_eval_mean_return, last_eval_success_rate}``;
+        ``last_eval_*`` are those of the last learner-alone iteration (None without one).
+    """
+    import gymnasium as gym
+    from stable_baselines3 import PPO
+    from stable_baselines3.common.vec_env import DummyVecEnv, VecNormalize
+
+    import suture_gym  # noqa: F401  (registers the ids)
+    from agents.expert import FeedbackExpert
+    from agents.imitation import behaviour_clone
+
+    settings = dagger_settings(script.get("dagger", {}))
+    env = gym.make(env_id, **script.get("env_kwargs", {}))
+    if not isinstance(env.observation_space, gym.spaces.Box):
+        raise ValueError(f"DAgger needs flat (Box) observations, {env_id} has {env.observation_space}")
+    normalize = script.get("normalize", False)
+    norm_kwargs = {**(normalize if isinstance(normalize, dict) else {}), "norm_reward": False}
+    vec_env = DummyVecEnv([lambda: env])
+    if normalize:
+        vec_env = VecNormalize(vec_env, **norm_kwargs)
+    model = PPO(script["policy"], vec_env, seed=seed, device="cpu", verbose=0, **kwargs)
+    oracle = FeedbackExpert(env, lead=settings["lead"])
+    rng = np.random.default_rng(seed)
+
+    columns: dict[str, list] = {"observations": [], "actions": [], "rewards": []}
+    starts: list[int] = []
+    history: list[dict[str, Any]] = []
+    curve: dict[str, list] = {"timesteps": [], "results": [], "ep_lengths": [], "successes": []}
+    steps = episode = 0
+    bar = None
+    if progress_bar:
+        from tqdm import tqdm
+
+        bar = tqdm(total=total, desc=f"dagger {env_id}", unit="step", file=sys.stderr)
+    t0 = time.perf_counter()
+    for iteration in range(settings["iterations"]):
+        if steps >= total:
+            break
+        beta = settings["beta"] * settings["beta_decay"] ** iteration if iteration else settings["beta"]
+        returns, lengths, successes, seeds = [], [], [], []
+        for _ in range(settings["episodes_per_iteration"]):
+            env_seed = SEED_BASE + 10_000 * seed + episode
+            obs, _ = env.reset(seed=env_seed)
+            oracle.reset()
+            starts.append(len(columns["actions"]))
+            total_reward, length, done, info = 0.0, 0, False, {}
+            while not done:
+                label = oracle(obs)
+                action = label if rng.random() < beta else _act(model, vec_env, obs)
+                columns["observations"].append(np.asarray(obs, dtype=np.float32))
+                columns["actions"].append(label)
+                obs, reward, terminated, truncated, info = env.step(action)
+                columns["rewards"].append(float(reward))
+                total_reward += float(reward)
+                length += 1
+                done = terminated or truncated
+            steps += length
+            episode += 1
+            if bar is not None:
+                bar.update(length)
+            returns.append(total_reward)
+            lengths.append(length)
+            successes.append(bool(info.get("is_success", False)))
+            seeds.append(env_seed)
+        demos = {"observations": np.asarray(columns["observations"]), "actions": np.asarray(columns["actions"]),
+                 "rewards": np.asarray(columns["rewards"]), "episode_starts": np.asarray(starts)}
+        fit = behaviour_clone(model, demos, epochs=settings["epochs"], batch_size=settings["batch_size"],
+                              learning_rate=settings["learning_rate"], seed=seed + iteration,
+                              update_statistics=iteration == 0)
+        if normalize:
+            vec_env.training = False  # statistics of the expert's states, then frozen
+        model.save(run_dir / "checkpoints" / f"model_{steps}_steps.zip")
+        if normalize:
+            vec_env.save(str(run_dir / "checkpoints" / f"model_vecnormalize_{steps}_steps.pkl"))
+        record = {"iteration": iteration, "beta": beta, "episodes": len(returns), "steps": int(sum(lengths)),
+                  "success_rate": float(np.mean(successes)), "mean_return": float(np.mean(returns)),
+                  "data_steps": fit["steps"], "action_mse": fit["action_mse"], "env_seeds": seeds,
+                  "checkpoint_steps": steps}
+        history.append(record)
+        if beta == 0.0:  # the learner alone: an evaluation of the previous iteration's policy
+            curve["timesteps"].append(steps - record["steps"])
+            curve["results"].append(returns)
+            curve["ep_lengths"].append(lengths)
+            curve["successes"].append(successes)
+        if verbose:
+            print(json.dumps({k: v for k, v in record.items() if k != "env_seeds"}), file=sys.stderr)
+    if bar is not None:
+        bar.close()
+    wall = time.perf_counter() - t0
+
+    model.save(run_dir / "final_model.zip")
+    if normalize:
+        vec_env.save(str(run_dir / "final_vecnormalize.pkl"))
+    env.close()
+    best = _best_iteration(history)
+    if best is not None:
+        shutil.copyfile(run_dir / "checkpoints" / f"model_{history[best - 1]['checkpoint_steps']}_steps.zip",
+                        run_dir / "best_model.zip")
+    last_return = last_success = None
+    if curve["timesteps"]:
+        (run_dir / "eval").mkdir(exist_ok=True)
+        np.savez(run_dir / "eval" / "evaluations.npz", **{k: np.asarray(v) for k, v in curve.items()})
+        from agents.plotting import plot_learning_curve
+
+        plot_learning_curve(run_dir / "eval" / "evaluations.npz", run_dir / "learning_curve.png",
+                            title=f"DAgger on {env_id}")
+        last_return = float(np.mean(curve["results"][-1]))
+        last_success = float(np.mean(curve["successes"][-1]))
+    return {"timesteps": steps, "wall_s": round(wall, 1), "iterations": history, "best_iteration": best,
+            "last_eval_mean_return": last_return, "last_eval_success_rate": last_success}
+
+
+def _act(model, vec_env, obs: np.ndarray) -> np.ndarray:
+    """The learner's deterministic action on the raw observation ``obs``."""
+    from stable_baselines3.common.vec_env import VecNormalize
+
+    if isinstance(vec_env, VecNormalize):
+        obs = vec_env.normalize_obs(obs)
+    action, _ = model.predict(obs, deterministic=True)
+    return action
+
+
+def _best_iteration(history: list[dict[str, Any]]) -> int | None:
+    """Index of the learner-alone iteration (after the first) that succeeded most often, the later one on ties:
+    it evaluated the checkpoint of the iteration before it. None without such an iteration."""
+    alone = [i for i, record in enumerate(history) if i > 0 and record["beta"] == 0.0]
+    if not alone:
+        return None
+    return max(alone, key=lambda i: (history[i]["success_rate"], i))

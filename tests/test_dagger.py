@@ -1,0 +1,112 @@
+"""DAgger (agents/dagger.py) and its oracle, the feedback expert (agents/expert.py), on NeedleInsert."""
+
+import gymnasium as gym
+import numpy as np
+import pytest
+
+pytest.importorskip("stable_baselines3")
+
+import suture_gym  # noqa: E402,F401
+from agents.dagger import DAGGER_KEYS, dagger_settings  # noqa: E402
+from agents.evaluation import evaluate  # noqa: E402
+from agents.expert import ExpertPolicy, FeedbackExpert  # noqa: E402
+from agents.hyperparams import load_hyperparams, resolve  # noqa: E402
+from agents.training import train  # noqa: E402
+
+NOMINAL = {"config": "configs/envs/needle_insert_deterministic.yaml"}
+
+
+@pytest.fixture(scope="module")
+def env():
+    env = gym.make("SutureGym/NeedleInsert-v2", **NOMINAL)
+    yield env
+    env.close()
+
+
+@pytest.mark.parametrize(
+    ("change", "message"),
+    [
+        ("iterations: 3", "dagger must be a mapping"),
+        ({"rounds": 3}, "rounds"),
+        ({"iterations": 0}, "dagger.iterations"),
+        ({"episodes_per_iteration": 1.5}, "dagger.episodes_per_iteration"),
+        ({"beta": 1.5}, "dagger.beta"),
+        ({"beta_decay": -0.1}, "dagger.beta_decay"),
+        ({"lead": 0.0}, "dagger.lead"),
+        ({"learning_rate": float("nan")}, "dagger.learning_rate"),
+    ],
+)
+def test_dagger_settings_name_bad_values(change, message):
+    with pytest.raises(ValueError, match=message):
+        dagger_settings(change)
+
+
+def test_every_task_has_a_dagger_recipe():
+    for task in ("NeedleInsert", "SutureThrow", "WoundClosure"):
+        script, _ = resolve(load_hyperparams("dagger", f"SutureGym/{task}-v2"))
+        assert set(script["dagger"]) == set(DAGGER_KEYS)
+
+
+def test_feedback_expert_labels_the_state_not_its_history(env):
+    """A feedback expert that drove the needle for 60 steps and one created at that state command the same pose
+    (the clock expert's fresh copy would command its first clock step again)."""
+    obs, _ = env.reset(seed=0)
+    driver = FeedbackExpert(env)
+    for _ in range(60):
+        obs, *_ = env.step(driver(obs))
+    fresh = FeedbackExpert(env)
+    np.testing.assert_allclose(fresh(obs), driver(obs), atol=1e-6)
+    assert fresh.angle == pytest.approx(driver.angle, abs=1e-12)
+    clock = ExpertPolicy(env)
+    clock(obs)
+    assert driver.angle - clock.angle > 0.2  # 60 steps on, the needle is far past the clock's first command
+
+
+def test_feedback_expert_inserts_the_needle(env):
+    obs, _ = env.reset(seed=0)
+    expert = FeedbackExpert(env)
+    done = False
+    while not done:
+        obs, _, terminated, truncated, info = env.step(expert(obs))
+        done = terminated or truncated
+    assert info["is_success"] and terminated
+
+
+def test_feedback_expert_names_a_bad_lead(env):
+    with pytest.raises(ValueError, match="lead"):
+        FeedbackExpert(env, lead=-0.01)
+
+
+def test_dagger_run_writes_an_evaluable_model(tmp_path):
+    hyperparams = {"policy": "MlpPolicy", "n_timesteps": 5000, "normalize": True, "env_kwargs": NOMINAL,
+                   "policy_kwargs": {"net_arch": [32]},
+                   "dagger": {"iterations": 3, "episodes_per_iteration": 1, "epochs": 2}}
+    result = train("dagger", "SutureGym/NeedleInsert-v2", seed=1, out_dir=tmp_path, progress_bar=False,
+                   hyperparams=hyperparams)
+    run = result.run_dir
+    for name in ("final_model.zip", "final_vecnormalize.pkl", "best_model.zip", "config.yaml", "summary.json",
+                 "learning_curve.png", "eval/evaluations.npz"):
+        assert (run / name).exists(), name
+    import json
+
+    summary = json.loads((run / "summary.json").read_text())
+    betas = [record["beta"] for record in summary["iterations"]]
+    assert betas == [1.0, 0.0, 0.0]
+    steps = [record["steps"] for record in summary["iterations"]]
+    assert [record["data_steps"] for record in summary["iterations"]] == list(np.cumsum(steps))
+    assert summary["timesteps"] == sum(steps) == result.timesteps
+    seeds = [seed for record in summary["iterations"] for seed in record["env_seeds"]]
+    assert len(set(seeds)) == len(seeds) and min(seeds) >= 100_000
+    curve = np.load(run / "eval" / "evaluations.npz")
+    assert list(curve["timesteps"]) == [steps[0], steps[0] + steps[1]]
+    report = evaluate("SutureGym/NeedleInsert-v2", str(run / "final_model.zip"), episodes=1, seed=7)
+    assert report["vecnormalize"].endswith("final_vecnormalize.pkl") and report["env_kwargs"]["config"]
+    with pytest.raises(ValueError, match="cannot be resumed"):
+        train("dagger", "SutureGym/NeedleInsert-v2", out_dir=tmp_path, hyperparams=hyperparams,
+              resume=run / "final_model.zip")
+
+
+def test_dagger_settings_belong_to_the_dagger_config(tmp_path):
+    with pytest.raises(ValueError, match="dagger.yml"):
+        train("ppo", "Pendulum-v1", out_dir=tmp_path, progress_bar=False,
+              hyperparams={"policy": "MlpPolicy", "n_timesteps": 64, "dagger": {}})
