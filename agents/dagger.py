@@ -11,7 +11,8 @@ Iteration ``i`` (0-based) runs ``episodes_per_iteration`` episodes in which each
 oracle's with probability ``beta * beta_decay ** i`` and the learner's (deterministic mean) otherwise; every
 visited observation is stored with the oracle's label. After each iteration the policy's mean is refitted on all
 the data so far (:func:`agents.imitation.behaviour_clone`, which also fits the value head to the rollouts'
-returns, so PPO can fine-tune the result). With the default ``beta_decay: 0`` iteration 0 is the expert's
+returns, so PPO can fine-tune the result). An episode whose needle has stopped moving ends early
+(:data:`STALL_DISTANCE`) and counts as a failure. With the default ``beta_decay: 0`` iteration 0 is the expert's
 demonstrations and every later iteration is the learner alone: its episodes are then an evaluation of the
 policy fitted one iteration before, on env seeds no other iteration uses, and they are the run's learning curve.
 
@@ -40,9 +41,15 @@ import numpy as np
 #: Keys of a config's ``dagger`` mapping and their defaults: iterations (>= 1), episodes per iteration (>= 1),
 #: the oracle's share of the executed actions in iteration 0 (``beta``, in [0, 1]) and its decay per iteration
 #: (``beta_decay``, in [0, 1]), the refit's passes over all data (``epochs``), minibatch size and Adam step, and
-#: the oracle's ``lead`` (rad, :class:`agents.expert.FeedbackExpert`).
+#: the oracle's ``lead`` (rad, :class:`agents.expert.FeedbackExpert`) and the steps after which a still needle ends
+#: a rollout (``stall_steps``, see :data:`STALL_DISTANCE`).
 DAGGER_KEYS: dict[str, Any] = {"iterations": 8, "episodes_per_iteration": 10, "beta": 1.0, "beta_decay": 0.0,
-                               "epochs": 10, "batch_size": 256, "learning_rate": 1e-3, "lead": 0.015}
+                               "epochs": 10, "batch_size": 256, "learning_rate": 1e-3, "lead": 0.02,
+                               "stall_steps": 100}
+#: A rollout whose needle tip moved less than this (m) over the last ``stall_steps`` steps ends there (the
+#: scripted surgeon never holds still, so a still needle is a learner stuck, e.g. pushing too weakly against the
+#: tissue's friction; its labels past that point would repeat the same state).
+STALL_DISTANCE = 2.0e-4
 #: Env seeds of a run with seed ``s``: episode ``k`` (counted over all iterations) uses ``SEED_BASE + 10_000 s +
 #: k``, clear of the evaluation seeds (``scripts/evaluate.py`` starts at 0, ``make run`` at 10,000).
 SEED_BASE = 100_000
@@ -60,7 +67,7 @@ def dagger_settings(value: Any) -> dict[str, Any]:
     if unknown:
         raise ValueError(f"dagger has unknown keys {unknown}; known: {sorted(DAGGER_KEYS)}")
     out = {**DAGGER_KEYS, **value}
-    for key in ("iterations", "episodes_per_iteration", "epochs", "batch_size"):
+    for key in ("iterations", "episodes_per_iteration", "epochs", "batch_size", "stall_steps"):
         if isinstance(out[key], bool) or not isinstance(out[key], int) or out[key] < 1:
             raise ValueError(f"dagger.{key} must be an integer >= 1, got {out[key]!r}")
     for key in ("beta", "beta_decay"):
@@ -92,7 +99,8 @@ def train_dagger(env_id: str, seed: int, run_dir: Path, total: int, script: dict
 
     Returns:
         ``{timesteps, wall_s, iterations: [{iteration, beta, episodes, steps, success_rate, mean_return,
-        data_steps, action_mse, env_seeds}], best_iteration, last_eval_mean_return, last_eval_success_rate}``;
+        stalled_episodes, data_steps, action_mse, env_seeds, checkpoint_steps}], best_iteration,
+        last_eval_mean_return, last_eval_success_rate}``;
         ``last_eval_*`` are those of the last learner-alone iteration (None without one).
     """
     import gymnasium as gym
@@ -131,13 +139,14 @@ def train_dagger(env_id: str, seed: int, run_dir: Path, total: int, script: dict
         if steps >= total:
             break
         beta = settings["beta"] * settings["beta_decay"] ** iteration if iteration else settings["beta"]
-        returns, lengths, successes, seeds = [], [], [], []
+        returns, lengths, successes, seeds, stalls = [], [], [], [], 0
         for _ in range(settings["episodes_per_iteration"]):
             env_seed = SEED_BASE + 10_000 * seed + episode
             obs, _ = env.reset(seed=env_seed)
             oracle.reset()
             starts.append(len(columns["actions"]))
             total_reward, length, done, info = 0.0, 0, False, {}
+            tips = [env.unwrapped.sim.tip_position()]
             while not done:
                 label = oracle(obs)
                 action = label if rng.random() < beta else _act(model, vec_env, obs)
@@ -147,9 +156,13 @@ def train_dagger(env_id: str, seed: int, run_dir: Path, total: int, script: dict
                 columns["rewards"].append(float(reward))
                 total_reward += float(reward)
                 length += 1
-                done = terminated or truncated
+                tips.append(env.unwrapped.sim.tip_position())
+                stalled = len(tips) > settings["stall_steps"] and np.linalg.norm(
+                    tips[-1] - tips[-1 - settings["stall_steps"]]) < STALL_DISTANCE
+                done = terminated or truncated or stalled
             steps += length
             episode += 1
+            stalls += int(stalled)
             if bar is not None:
                 bar.update(length)
             returns.append(total_reward)
@@ -168,7 +181,8 @@ def train_dagger(env_id: str, seed: int, run_dir: Path, total: int, script: dict
             vec_env.save(str(run_dir / "checkpoints" / f"model_vecnormalize_{steps}_steps.pkl"))
         record = {"iteration": iteration, "beta": beta, "episodes": len(returns), "steps": int(sum(lengths)),
                   "success_rate": float(np.mean(successes)), "mean_return": float(np.mean(returns)),
-                  "data_steps": fit["steps"], "action_mse": fit["action_mse"], "env_seeds": seeds,
+                  "stalled_episodes": stalls, "data_steps": fit["steps"], "action_mse": fit["action_mse"],
+                  "env_seeds": seeds,
                   "checkpoint_steps": steps}
         history.append(record)
         if beta == 0.0:  # the learner alone: an evaluation of the previous iteration's policy

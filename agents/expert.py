@@ -47,9 +47,12 @@ class FeedbackExpert(ExpertPolicy):
     Args:
         env, turn_rate, pull_speed: as :class:`ExpertPolicy` (``turn_rate`` is unused while turning, but the
             transit and the first stitch's plan read it).
-        lead: how far ahead of the measured tip the command leads, rad (> 0). The default, 0.015 rad, is about
-            the clock expert's own lag behind its command in SutureThrow (median 0.013 rad, 95th percentile
-            0.017 rad), so both move the needle at about the same speed.
+        lead: how far ahead of the measured tip the command leads, rad (> 0). The clock expert lags its own
+            command by a median 0.013 rad in SutureThrow (95th percentile 0.017 rad), more inside the tissue;
+            at 0.015 rad the feedback expert turns through NeedleInsert's tissue at half the clock's speed and
+            runs out of time, at the default 0.02 rad it succeeds in 20/20 NeedleInsert-v2 episodes (391 steps
+            on average, the clock expert 462) and 10/10 SutureThrow-v2 ones (977 steps, the clock expert about
+            1,350).
     """
 
     def __init__(self, env, turn_rate: float | None = None, pull_speed: float | None = None,

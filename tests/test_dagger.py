@@ -34,6 +34,7 @@ def env():
         ({"beta_decay": -0.1}, "dagger.beta_decay"),
         ({"lead": 0.0}, "dagger.lead"),
         ({"learning_rate": float("nan")}, "dagger.learning_rate"),
+        ({"stall_steps": 0}, "dagger.stall_steps"),
     ],
 )
 def test_dagger_settings_name_bad_values(change, message):
@@ -110,3 +111,19 @@ def test_dagger_settings_belong_to_the_dagger_config(tmp_path):
     with pytest.raises(ValueError, match="dagger.yml"):
         train("ppo", "Pendulum-v1", out_dir=tmp_path, progress_bar=False,
               hyperparams={"policy": "MlpPolicy", "n_timesteps": 64, "dagger": {}})
+
+
+def test_a_learner_that_holds_still_ends_its_rollout(tmp_path):
+    """An untrained learner (the refit's step is 1e-9) barely moves the needle: each of its rollouts ends once
+    the tip has moved under STALL_DISTANCE over ``stall_steps`` steps, instead of running to the time limit."""
+    hyperparams = {"policy": "MlpPolicy", "n_timesteps": 5000, "normalize": True, "env_kwargs": NOMINAL,
+                   "policy_kwargs": {"net_arch": [32]},
+                   "dagger": {"iterations": 2, "episodes_per_iteration": 2, "epochs": 1, "learning_rate": 1e-9,
+                              "stall_steps": 20}}
+    result = train("dagger", "SutureGym/NeedleInsert-v2", seed=0, out_dir=tmp_path, progress_bar=False,
+                   hyperparams=hyperparams)
+    import json
+
+    expert, learner = json.loads((result.run_dir / "summary.json").read_text())["iterations"]
+    assert expert["stalled_episodes"] == 0 and expert["success_rate"] == 1.0
+    assert learner["stalled_episodes"] == 2 and learner["steps"] == 2 * 20
