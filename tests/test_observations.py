@@ -267,3 +267,32 @@ def test_vector_env_batches_dict_observations():
     obs, *_ = venv.step(np.zeros((2, 6), dtype=np.float32))
     assert venv.observation_space.contains(obs)
     venv.close()
+
+
+def test_sb3_multi_input_policy_and_vecnormalize_leave_the_images_alone():
+    """PPO's MultiInputPolicy trains on the Dict observations of the SB3 vector env and of the agents' pipeline;
+    VecNormalize there normalises the state and depth but not the uint8 image (NatureCNN needs >= 36 px)."""
+    pytest.importorskip("stable_baselines3")
+    from stable_baselines3 import PPO
+
+    from agents.imitation import behaviour_clone
+    from agents.training import make_train_envs
+    from suture_gym.envs.sb3 import make_sb3_vec_env
+
+    config = {"observation": {"mode": "rgbd", "camera": {"width": 36, "height": 36}}}
+    venv = make_sb3_vec_env("SutureGym/NeedleInsert-v2", 1, config=config, workers=0)
+    model = PPO("MultiInputPolicy", venv, n_steps=8, batch_size=8, n_epochs=1, device="cpu", seed=0)
+    model.learn(8)
+    venv.close()
+    env, eval_env = make_train_envs("SutureGym/NeedleInsert-v2", 1, 0, {"config": config}, {"clip_obs": 10.0})
+    assert sorted(env.norm_obs_keys) == ["depth", "state"]
+    obs = env.reset()
+    assert obs["rgb"].dtype == np.uint8 and env.observation_space["rgb"].dtype == np.uint8
+    model = PPO("MultiInputPolicy", env, n_steps=8, batch_size=8, n_epochs=1, device="cpu", seed=0)
+    model.learn(8)
+    assert env.obs_rms["state"].count > 8  # the statistics were updated
+    with pytest.raises(ValueError, match="behaviour cloning reads flat state observations"):
+        behaviour_clone(model, {"observations": np.zeros((1, 40)), "actions": np.zeros((1, 6)),
+                                "rewards": np.zeros(1), "episode_starts": np.zeros(1)})
+    env.close()
+    eval_env.close()
