@@ -56,7 +56,6 @@ import numpy as np
 from suture_gym.envs.config import EnvConfig, apply_overrides, load_config
 from suture_gym.envs.randomization import EpisodeParams, nominal_params, sample_params
 from suture_gym.envs.registry import task_class
-from suture_gym.envs.sensors import Sensors
 from suture_gym.envs.simulation import Simulation, SimulationSnapshot
 from suture_gym.envs.spaces import (
     SDIST_CLIP,
@@ -146,7 +145,11 @@ class SutureEnv(gym.Env):
         #: The observation vector's space (the whole observation in ``state`` mode).
         self.state_space = gym.spaces.Box(-bound, bound, (size,), np.float32)
         #: The camera images or point cloud (:mod:`suture_gym.envs.sensors`; None in ``state`` mode).
-        self.sensors = None if cfg.observation.mode == "state" else Sensors(cfg, self.sim)
+        self.sensors = None
+        if cfg.observation.mode != "state":
+            from suture_gym.envs.sensors import Sensors
+
+            self.sensors = Sensors(cfg, self.sim)
         self.observation_space = self.state_space
         if self.sensors is not None:
             state = {"state": self.state_space} if cfg.observation.include_state else {}
