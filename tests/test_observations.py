@@ -296,3 +296,19 @@ def test_sb3_multi_input_policy_and_vecnormalize_leave_the_images_alone():
                                 "rewards": np.zeros(1), "episode_starts": np.zeros(1)})
     env.close()
     eval_env.close()
+
+
+def test_culling_the_tissues_back_faces_leaves_the_image_unchanged():
+    """The sensor renderer culls the tissue's back faces (its surface is closed and outward-oriented); on the
+    wound scene, with the needle in the tissue, the image is the one drawn with every face."""
+    from suture_gym.render import SceneRenderer
+
+    env = SutureEnv("suture_throw", {"observation": {"mode": "rgb", "camera": {"width": 64, "height": 64}}})
+    env.reset(seed=0, options={"phase": "inserted"})
+    obs = _observe(env)["rgb"]
+    every_face = SceneRenderer(64, 64, camera=env.sensors.camera)
+    reference = every_face.render_sensor(env.sim.render_frame(env._markers(), ""), rgb=True, depth=False)[0]
+    np.testing.assert_array_equal(obs, reference)
+    nodes = env.sim.render_frame(env._markers(), "").needle_q
+    assert np.any((nodes[:, 1] > 0.0) & (nodes[:, 1] < 0.012) & (nodes[:, 2] > 0.0) & (nodes[:, 2] < 0.008))
+    env.close()
