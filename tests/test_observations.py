@@ -247,9 +247,27 @@ def test_env_errors_name_the_camera():
         SutureGoalEnv("needle_insert", {"observation": {"mode": "rgb", "include_state": False}})
 
 
+def test_camera_config_round_trips_through_yaml(tmp_path):
+    from suture_gym.envs.config import save_config
+
+    camera = {"eye": [0.05, -0.01, 0.04], "look_at": [0.004, 0.012, 0.008], "fov_y": 40.0, "width": 32}
+    config = load_config("needle_insert", {"observation": {"mode": "rgbd", "include_state": False, "camera": camera,
+                                                           "point_cloud": {"needle": 0}}})
+    save_config(config, tmp_path / "config.yaml")
+    assert load_config("needle_insert", tmp_path / "config.yaml") == config
+    assert config.observation.camera.eye == (0.05, -0.01, 0.04) and config.observation.camera.distance == 0.0
+
+
 def test_goal_env_adds_the_sensor_keys():
+    from gymnasium.utils.env_checker import check_env
+
     env = SutureGoalEnv("needle_insert", {"observation": {"mode": "depth", "camera": SMALL_CAMERA}})
     assert set(env.observation_space.spaces) == {"observation", "achieved_goal", "desired_goal", "depth"}
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")
+        # The goal boxes are unbounded (as in the state-mode goal ids); the depth box is not.
+        warnings.filterwarnings("ignore", message=".*Box observation space (minimum|maximum) value is.*infinity")
+        check_env(env, skip_render_check=True)
     obs, _ = env.reset(seed=0)
     obs, reward, *_, info = env.step(env.action_space.sample())
     assert env.observation_space.contains(obs)
