@@ -228,7 +228,7 @@ def test_seeded_determinism(mode):
         ({"mode": "rgb", "camera": {"direction": [0.0, 0.0, 2.0]}},
          r"observation.camera.up = \[0.0, 0.0, 1.0\] is parallel to observation.camera.direction"),
         ({"mode": "rgb", "camera": {"far": 0.0005}}, "observation.camera.far must be > 0.001, got 0.0005"),
-        ({"mode": "depth", "camera": {"distance": 0.6}}, "observation.camera.distance = 0.6 m must lie between"),
+        ({"mode": "depth", "camera": {"distance": 1.5}}, "observation.camera.distance = 1.5 m must lie between"),
         ({"mode": "point_cloud", "point_cloud": {"tissue": 0}}, "observation.point_cloud.tissue must be an integer"),
     ],
 )
@@ -238,8 +238,11 @@ def test_config_errors_name_the_bad_value(overrides, message):
 
 
 def test_env_errors_name_the_camera():
-    with pytest.raises(ValueError, match=r"observation.camera.far = 0.02 m must exceed the eye's distance"):
+    with pytest.raises(ValueError, match=r"observation.camera.far = 0.02 m must exceed 0.0\d+ m, the depth of"):
         SutureEnv("needle_insert", {"observation": {"mode": "rgb", "camera": {**SMALL_CAMERA, "far": 0.02}}})
+    # The point looked at (4.2 cm from the eye) is in front of far = 5 cm, the box's farthest corner (5.5 cm) not.
+    with pytest.raises(ValueError, match=r"observation.camera.far = 0.05 m must exceed 0.05\d+ m, the depth of"):
+        SutureEnv("needle_insert", {"observation": {"mode": "rgb", "camera": {**SMALL_CAMERA, "far": 0.05}}})
     with pytest.raises(ValueError, match=r"observation.camera: up .* is parallel to the view direction"):
         SutureEnv("needle_insert", {"observation": {"mode": "rgb", "camera": {
             **SMALL_CAMERA, "eye": [0.004, 0.012, 0.05], "look_at": [0.004, 0.012, 0.0]}}})

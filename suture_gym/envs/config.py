@@ -513,7 +513,9 @@ class CameraConfig(_Section):
     start) from ``eye``, or, when ``eye`` is empty, from ``look_at + distance * direction / |direction|``, where
     ``distance = 0`` picks the nearest distance at which that whole box is in view
     (:func:`~suture_gym.render.frame_box`). ``up`` fixes the roll. Depth is the distance along the optical axis;
-    only ``near <= depth <= far`` is drawn, and a pixel that sees nothing has depth ``far``.
+    only ``near <= depth <= far`` is drawn, and a pixel that sees nothing has depth ``far``, which must lie beyond
+    the scene's box (checked when the env is built; the default fits every shipped scene, the hand's reaching
+    0.48 m).
     """
 
     SECTION: ClassVar[str] = "observation.camera"
@@ -527,7 +529,7 @@ class CameraConfig(_Section):
     distance: float = 0.0  # m, eye to look_at (0: the nearest that frames the scene box); needs an empty eye
     up: tuple[float, float, float] = (0.0, 0.0, 1.0)  # world direction shown upwards in the image
     near: float = 0.001  # m, nearest depth drawn
-    far: float = 0.5  # m, farthest depth drawn, and the depth of the background
+    far: float = 1.0  # m, farthest depth drawn (beyond the scene's box), and the depth of the background
 
     def validate(self, path: str) -> None:
         _count(f"{path}.width", self.width, 1)

@@ -10,7 +10,7 @@ Keys of the ``Dict`` observation (spaces in :func:`~suture_gym.envs.spaces.senso
   (:meth:`~suture_gym.render.SceneRenderer.render_sensor`).
 * ``depth`` (modes ``depth``, ``rgbd``): ``(H, W, 1) float32``, m, the distance along the camera's optical axis
   to the nearest tissue, needle or thread surface at each pixel centre (what a depth camera reports, not the
-  length of the ray); ``observation.camera.far`` (default 0.5 m) where the pixel sees none of them, the
+  length of the ray); ``observation.camera.far`` (default 1 m) where the pixel sees none of them, the
   background. The markers are not part of it.
 * ``point_cloud`` (mode ``point_cloud``): ``(N, 3) float32``, m, in the world frame (the scene's: the tissue on
   its base at ``z = 0``, gravity along ``-z``), ``N = point_cloud.tissue + point_cloud.needle (+
@@ -53,7 +53,8 @@ def observation_camera(config: CameraConfig, view_points: np.ndarray) -> Camera:
 
     Raises:
         ValueError naming ``observation.camera``: a pose that gives no camera (``eye`` on the point looked at,
-        ``up`` along the view direction) or that puts the point looked at beyond ``far``.
+        ``up`` along the view direction) or that puts the point looked at or a corner of the scene's box beyond
+        ``far``.
     """
     lo, hi = view_points.min(axis=0), view_points.max(axis=0)
     look_at = np.array(config.look_at, dtype=np.float64) if config.look_at else 0.5 * (lo + hi)
@@ -67,14 +68,17 @@ def observation_camera(config: CameraConfig, view_points: np.ndarray) -> Camera:
         framed = frame_box(lo, hi, width=config.width, height=config.height, direction=direction, up=config.up,
                            fov_y_deg=config.fov_y, margin=FRAME_MARGIN)
         eye = look_at + float(np.linalg.norm(framed.eye - framed.target)) * direction
-    distance = float(np.linalg.norm(eye - look_at))
-    if distance >= config.far:
-        raise ValueError(f"observation.camera.far = {config.far} m must exceed the eye's distance {distance:.4g} m "
-                         f"to the point looked at {look_at.tolist()} m, or nothing there is drawn")
     try:
-        return Camera(eye, look_at, config.up, config.fov_y, config.width, config.height, config.near, config.far)
+        camera = Camera(eye, look_at, config.up, config.fov_y, config.width, config.height, config.near, config.far)
     except ValueError as error:
         raise ValueError(f"observation.camera: {error}") from None
+    corners = np.array([[x, y, z] for x in (lo[0], hi[0]) for y in (lo[1], hi[1]) for z in (lo[2], hi[2])])
+    deepest = float(np.max(-camera.to_camera(np.vstack([corners, look_at]))[:, 2]))
+    if deepest >= config.far:
+        raise ValueError(f"observation.camera.far = {config.far} m must exceed {deepest:.4g} m, the depth of the point "
+                         "looked at and of the farthest corner of the scene's box (the tissue at rest and the needle's "
+                         "start), or the image cuts them off")
+    return camera
 
 
 class PointCloudSampler:
