@@ -23,6 +23,7 @@ import math
 from pathlib import Path
 from typing import Any
 
+import gymnasium as gym
 import numpy as np
 
 
@@ -145,6 +146,9 @@ def behaviour_clone(model, demos: dict[str, np.ndarray], epochs: int = 30, batch
                          f"{type(model.policy).__name__}")
     if epochs < 1 or batch_size < 1:
         raise ValueError(f"epochs and batch_size must be >= 1, got {epochs} and {batch_size}")
+    if not isinstance(model.observation_space, gym.spaces.Box):
+        raise ValueError("behaviour cloning reads flat state observations (observation.mode 'state'), got a "
+                         f"{type(model.observation_space).__name__} observation space")
     obs = np.asarray(demos["observations"], dtype=np.float32)
     actions = np.asarray(demos["actions"], dtype=np.float32)
     rewards = np.asarray(demos["rewards"], dtype=np.float64)

@@ -79,13 +79,19 @@ def make_vec_env(env_id: str, n_envs: int, seed: int, env_kwargs: dict | None = 
 def make_train_envs(env_id: str, n_envs: int, seed: int, env_kwargs: dict, normalize) -> tuple:
     """``(training VecEnv, evaluation VecEnv)`` of ``env_id``: ``n_envs`` envs seeded from ``seed`` and one seeded
     ``seed + 1000``, both in ``VecNormalize`` when ``normalize`` (True or its keyword arguments; the evaluation
-    copy neither updates the statistics nor normalises rewards)."""
+    copy neither updates the statistics nor normalises rewards). With a ``Dict`` observation (the pixel and
+    point-cloud modes, goal-conditioned ids) the normalised keys default to
+    :func:`~suture_gym.envs.sb3.norm_obs_keys`: every key but the ``uint8`` images."""
     from stable_baselines3.common.vec_env import VecNormalize
+
+    from suture_gym.envs.sb3 import norm_obs_keys
 
     env = make_vec_env(env_id, n_envs, seed, env_kwargs)
     eval_env = make_vec_env(env_id, 1, seed + 1000, env_kwargs)
     if normalize:
         norm_kwargs = normalize if isinstance(normalize, dict) else {}
+        if norm_obs_keys(env.observation_space) is not None:
+            norm_kwargs = {"norm_obs_keys": norm_obs_keys(env.observation_space), **norm_kwargs}
         env = VecNormalize(env, **norm_kwargs)
         eval_env = VecNormalize(eval_env, **{**norm_kwargs, "training": False, "norm_reward": False})
     return env, eval_env

@@ -401,6 +401,61 @@ def test_markers_colour_depth_test_and_on_top():
         np.testing.assert_array_equal(image[px[m, 1], px[m, 0]], colors[m])
 
 
+# ------------------------------------------------------------------------------------------ sensor images
+
+
+def test_sensor_depth_of_an_oblique_plane_matches_ray_casting():
+    """Depth image of the plane z = 0 seen at 40 degrees: each pixel centre's ray meets the plane at the point
+    whose distance along the optical axis is the reference; the background is ``far``."""
+    cam = Camera(eye=(0.3, -0.8, 0.7), target=(0.1, 0.1, 0.0), fov_y_deg=50.0, width=48, height=40, near=0.01,
+                 far=3.0)
+    q = np.array([[-1.0, -1.0, 0.0], [1.0, -1.0, 0.0], [1.0, 1.0, 0.0], [-1.0, 1.0, 0.0]])
+    tris = np.array([[0, 1, 2], [0, 2, 3]], dtype=np.int32)
+    rgb, depth = SceneRenderer(48, 40, camera=cam).render_sensor(RenderFrame(q, tris), rgb=False, depth=True)
+    assert rgb is None and depth.shape == (40, 48, 1) and depth.dtype == np.float32
+    u, v = _centres(40, 48)
+    cx, cy = cam.principal_point
+    # Ray directions in camera space (depth 1 along -z), then world; hit of z = 0 at eye + s * ray.
+    ray = np.stack([(u - cx) / cam.focal_px, -(v - cy) / cam.focal_px, -np.ones_like(u)], axis=-1) @ cam.rotation
+    s = -cam.eye[2] / ray[..., 2]
+    hit = cam.eye + s[..., None] * ray
+    inside = (s > 0) & (np.abs(hit[..., 0]) < 1.0) & (np.abs(hit[..., 1]) < 1.0)
+    assert 100 < inside.sum() < inside.size  # the plane's far edge is in view: both cases are tested
+    # Depth along the axis is s (the ray's camera z is -1); the vertices snap to 1/256 px, worth about 1e-5 of it.
+    np.testing.assert_allclose(depth[inside, 0], s[inside], rtol=1e-4)
+    edge = np.abs(np.abs(hit[..., :2]).max(axis=-1) - 1.0) < 0.05  # pixels next to the plane's border
+    assert np.all(depth[~inside & ~edge, 0] == np.float32(3.0))
+
+
+def test_sensor_images_leave_overlays_out_and_markers_out_of_depth():
+    cam = _top_camera(size=64)
+    q, tris = _floor()
+    style = _flat_style()
+    renderer = SceneRenderer(64, 64, camera=cam, style=style)
+    marker = np.array([[0.1, 0.0, 0.2]])
+    frame = RenderFrame(q, tris, marker_q=marker, marker_radius=0.2, tip_force=0.5, caption="caption")
+    rgb, depth = renderer.render_sensor(frame, rgb=True, depth=True)
+    uv, marker_depth = cam.project(marker)
+    radius_px = 0.2 * cam.focal_px / marker_depth[0]  # 8 px
+    u, v = _centres(64, 64)
+    from_marker = np.hypot(u - uv[0, 0], v - uv[0, 1])
+    tissue = np.round(np.array(style.tissue_color) * 255).astype(np.uint8)
+    floor = (rgb == tissue).all(axis=2)
+    assert not floor[from_marker < radius_px - 1].any()  # the marker is drawn in the colour image
+    assert floor[from_marker > radius_px + 1].all()  # and nothing else but the floor: no caption, no gauge
+    np.testing.assert_allclose(depth[..., 0], 1.0, rtol=1e-6)  # the floor 1 m below everywhere, marker or not
+    full = renderer.render(frame)
+    assert not (full == tissue).all(axis=2)[from_marker > radius_px + 1].all()  # render() draws the overlays
+
+
+def test_sensor_images_need_a_camera_and_no_supersampling():
+    q, tris = _floor()
+    with pytest.raises(ValueError, match="needs a camera"):
+        SceneRenderer(16, 16).render_sensor(RenderFrame(q, tris), rgb=True, depth=False)
+    with pytest.raises(ValueError, match="ssaa = 1"):
+        SceneRenderer(16, 16, camera=_top_camera(size=16), ssaa=2).render_sensor(RenderFrame(q, tris), True, True)
+
+
 # ------------------------------------------------------------------------------------------ overlays
 
 

@@ -12,7 +12,11 @@ component of 1e6 acts, and is penalised, as 1).
 Observation: float32 vector laid out in :mod:`suture_gym.envs.spaces` (one row per index, with units), each
 entry its SI value divided by its field's scale and clipped to its finite bound (``observation.scaled: false``:
 raw SI values, infinite bounds), or for the goal-conditioned variant a Dict with ``observation``,
-``achieved_goal`` and ``desired_goal`` (the goals in SI units).
+``achieved_goal`` and ``desired_goal`` (the goals in SI units). ``observation.mode`` ``rgb``, ``depth``,
+``rgbd`` or ``point_cloud`` makes it a Dict of camera images ``rgb`` ``(H, W, 3) uint8`` and ``depth``
+``(H, W, 1) float32`` m (background: ``observation.camera.far``), or a point cloud ``point_cloud`` ``(N, 3)
+float32`` m in the world frame, with the vector as ``state`` (unless ``observation.include_state`` is false); the
+goal-conditioned variant adds those keys beside its own (:mod:`suture_gym.envs.sensors`).
 
 Episode end: ``terminated`` on success, on a tear (coupling force above the tear force, unless
 ``termination.end_on_tear`` is off), when the tip leaves the workspace, (flat ids, unless
@@ -53,7 +57,14 @@ from suture_gym.envs.config import EnvConfig, apply_overrides, load_config
 from suture_gym.envs.randomization import EpisodeParams, nominal_params, sample_params
 from suture_gym.envs.registry import task_class
 from suture_gym.envs.simulation import Simulation, SimulationSnapshot
-from suture_gym.envs.spaces import SDIST_CLIP, ObsField, observation_layout, observation_scale, observation_size
+from suture_gym.envs.spaces import (
+    SDIST_CLIP,
+    ObsField,
+    observation_layout,
+    observation_scale,
+    observation_size,
+    sensor_spaces,
+)
 from suture_gym.sim.quat import quat_conj, quat_from_rotation_vector, quat_mul, quat_normalize, quat_rotation_vector
 from suture_gym.tasks import Observables, Task, TaskState
 
@@ -131,7 +142,18 @@ class SutureEnv(gym.Env):
         self.obs_scale, self.obs_bound = observation_scale(self.layout)
         self.action_space = gym.spaces.Box(-1.0, 1.0, (6,), np.float32)
         bound = self.obs_bound.astype(np.float32)
-        self.observation_space = gym.spaces.Box(-bound, bound, (size,), np.float32)
+        #: The observation vector's space (the whole observation in ``state`` mode).
+        self.state_space = gym.spaces.Box(-bound, bound, (size,), np.float32)
+        #: The camera images or point cloud (:mod:`suture_gym.envs.sensors`; None in ``state`` mode).
+        self.sensors = None
+        if cfg.observation.mode != "state":
+            from suture_gym.envs.sensors import Sensors
+
+            self.sensors = Sensors(cfg, self.sim)
+        self.observation_space = self.state_space
+        if self.sensors is not None:
+            state = {"state": self.state_space} if cfg.observation.include_state else {}
+            self.observation_space = gym.spaces.Dict({**sensor_spaces(cfg), **state})
         self.metadata = {**self.metadata, "render_fps": max(1, int(round(1.0 / self.sim.control_dt)))}
         a = cfg.action
         self._wrench_scale = np.array([a.max_force] * 3 + [a.max_torque] * 3)
@@ -424,7 +446,12 @@ class SutureEnv(gym.Env):
         return np.clip(buf / self.obs_scale, -self.obs_bound, self.obs_bound).astype(np.float32)
 
     def _observation(self, o: Observables):
-        return self._vector(o)
+        if self.sensors is None:
+            return self._vector(o)
+        obs = self.sensors.observe(self.sim, self._markers())
+        if self.config.observation.include_state:
+            obs["state"] = self._vector(o)
+        return obs
 
     def _info(self, o: Observables, obs, outcome, diverged: bool) -> dict:
         """The step's ``info`` from the observables ``o``, the observation returned ``obs``, the task's outcome
@@ -477,21 +504,28 @@ class SutureGoalEnv(SutureEnv):
     def __init__(self, task: str | None = None, config=None, render_mode: str | None = None,
                  action_mode: str | None = None) -> None:
         super().__init__(task, config, render_mode, action_mode)
+        if not self.config.observation.include_state:
+            raise ValueError("observation.include_state = false is not available in the goal-conditioned ids: their "
+                             "'observation' key is the state vector")
         size = self.task_cls.GOAL_SIZE
         self.observation_space = gym.spaces.Dict(
             {
-                "observation": self.observation_space,
+                "observation": self.state_space,
                 "achieved_goal": gym.spaces.Box(-np.inf, np.inf, (size,), np.float32),
                 "desired_goal": gym.spaces.Box(-np.inf, np.inf, (size,), np.float32),
+                **sensor_spaces(self.config),
             }
         )
 
     def _observation(self, o: Observables):
-        return {
+        obs = {
             "observation": self._vector(o),
             "achieved_goal": self.task.achieved_goal(o).astype(np.float32),
             "desired_goal": self.task.desired_goal().astype(np.float32),
         }
+        if self.sensors is not None:
+            obs.update(self.sensors.observe(self.sim, self._markers()))
+        return obs
 
     def _term_names(self) -> tuple[str, ...]:
         return self.task_cls.GOAL_TERMS

@@ -63,7 +63,34 @@ def _observation_lines(task: type[Task], config, goal_conditioned: bool) -> list
         goal = ", ".join(f"{name} ({unit})" for name, unit in task.GOAL_LAYOUT)
         lines += ["", f"Goal-conditioned: ``Dict(observation=<the above>, achieved_goal=Box({task.GOAL_SIZE}), "
                   f"desired_goal=Box({task.GOAL_SIZE}))``, goal entries: {goal}."]
-    return lines
+    return lines + ["", _sensor_text(config, goal_conditioned)]
+
+
+def _sensor_text(config, goal_conditioned: bool) -> str:
+    """The paragraph on the pixel and point-cloud modes, with the default config's camera and point counts."""
+    from suture_gym.envs.spaces import POINT_CLOUD_BOUND
+
+    obs = config.observation
+    cam, pc = obs.camera, obs.point_cloud
+    thread = (f" + {pc.suture} on the thread's centreline (swage to free end)" if config.suture.node_count else
+              f" (+ ``point_cloud.suture = {pc.suture}`` on the thread's centreline in a scene with a thread)")
+    beside = ("added beside ``observation``, ``achieved_goal`` and ``desired_goal``" if goal_conditioned else
+              "with the vector above as ``state`` unless ``observation.include_state`` is false")
+    return (
+        f"Visual observations: ``observation.mode`` (default ``{obs.mode!r}``, the vector above) ``'rgb'``, "
+        "``'depth'``, ``'rgbd'`` or ``'point_cloud'`` gives a ``Dict`` of ``rgb`` ``Box(0, 255, (H, W, 3), "
+        "uint8)`` (the tissue, needle, thread and the planned entry/exit markers, no caption or gauge) and/or "
+        f"``depth`` ``Box(0, far, (H, W, 1), float32)`` (m along the camera's optical axis to the nearest tissue, "
+        f"needle or thread surface; ``far = {cam.far}`` m where there is none), from a camera fixed when the env is "
+        f"built (``observation.camera``: H x W = {cam.height} x {cam.width} px, rendered without supersampling, "
+        f"``fov_y = {cam.fov_y}`` deg, its eye along ``direction = {list(cam.direction)}`` from the centre of "
+        "the tissue and the needle's start from the distance that frames them, unless ``look_at``, ``eye`` or "
+        f"``distance`` say otherwise); or ``point_cloud`` ``Box(-{POINT_CLOUD_BOUND:g}, {POINT_CLOUD_BOUND:g}, (N, "
+        "3), float32)`` (m, world frame) whose rows are, in order, "
+        f"``point_cloud.tissue = {pc.tissue}`` fixed material points on the tissue surface, "
+        f"``point_cloud.needle = {pc.needle}`` on the needle's centreline (tip to swage){thread}; {beside} "
+        "(:mod:`suture_gym.envs.sensors`)."
+    )
 
 
 def _reward_lines(task: type[Task], config, goal_conditioned: bool) -> list[str]:

@@ -8,6 +8,9 @@ conventions follow (an env that finishes resets within the step, its last observ
 ``infos[i]["terminal_observation"]`` and ``infos[i]["TimeLimit.truncated"]`` marks a time-limit end), and
 ``monitor=True`` adds SB3's ``VecMonitor`` so episode returns and lengths reach the logger. Goal-conditioned ids
 work with ``HerReplayBuffer``: ``env_method("compute_reward", ...)`` reaches the envs' batched ``compute_reward``.
+The pixel and point-cloud observation modes give ``Dict`` observations for ``MultiInputPolicy``; wrap them in
+``VecNormalize`` with ``norm_obs_keys=norm_obs_keys(env.observation_space)`` (:func:`norm_obs_keys`), so the
+images are left to the policy's own scaling.
 """
 
 from __future__ import annotations
@@ -15,6 +18,7 @@ from __future__ import annotations
 from collections.abc import Sequence
 from typing import Any
 
+import gymnasium as gym
 import numpy as np
 from gymnasium.vector import AutoresetMode
 from stable_baselines3.common.vec_env import VecEnv, VecMonitor
@@ -89,6 +93,17 @@ class SB3VecEnv(VecEnv):
 
     def env_is_wrapped(self, wrapper_class, indices=None) -> list[bool]:
         return [False for _ in self.vector_env._indices(indices)]
+
+
+def norm_obs_keys(observation_space: gym.spaces.Space) -> list[str] | None:
+    """The keys of a ``Dict`` observation space that ``VecNormalize`` should normalise: all but the ``uint8``
+    images (``rgb``), which SB3's policies scale by 1/255 themselves (normalised, they would turn into float
+    vectors that SB3 no longer treats as images); the state vector, a depth image (per pixel) and a point cloud
+    (per row) are normalised. None for any other space (``VecNormalize`` then takes no keys)."""
+    if not isinstance(observation_space, gym.spaces.Dict):
+        return None
+    return [key for key, space in observation_space.spaces.items()
+            if not (isinstance(space, gym.spaces.Box) and space.dtype == np.uint8 and len(space.shape) == 3)]
 
 
 def make_sb3_vec_env(env_id: str, num_envs: int = 1, *, monitor: bool = True, **kwargs) -> VecEnv:

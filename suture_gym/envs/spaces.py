@@ -12,6 +12,9 @@ field's ``scale`` (in the field's unit: :data:`LENGTH_SCALE` for lengths, the ac
 ``max_torque`` for forces and torques, ...) and clipped to ``[-bound, bound]``, so a policy sees O(1) numbers
 in a box with finite bounds; with ``scaled: false`` it is the raw SI value (scale 1, infinite bounds). The
 vector is float32.
+
+The other ``observation.mode`` values give a ``Dict`` of camera images or a point cloud beside this vector
+(:func:`sensor_spaces`, :mod:`suture_gym.envs.sensors`).
 """
 
 from __future__ import annotations
@@ -19,6 +22,7 @@ from __future__ import annotations
 import math
 from dataclasses import dataclass
 
+import gymnasium as gym
 import numpy as np
 
 from suture_gym.envs.config import EnvConfig, default_config
@@ -33,6 +37,8 @@ SPEED_SCALE = 0.05
 ANGULAR_SPEED_SCALE = 1.0
 #: Bound of a scaled entry (in scale units) unless its field has a tighter one.
 OBS_BOUND = 10.0
+#: Bound of the point cloud's coordinates, m (far beyond any scene; :mod:`suture_gym.envs.sensors`).
+POINT_CLOUD_BOUND = 10.0
 
 
 @dataclass(frozen=True)
@@ -158,6 +164,30 @@ def observation_table(layout: tuple[ObsField, ...]) -> list[tuple[int, str, str,
             suffix = "" if f.size == 1 else ("_" + "xyz"[k] if f.size == 3 else f"[{k}]")
             rows.append((f.start + k, f.name + suffix, f.unit, f.scale[k], f.bound[k], f.description))
     return rows
+
+
+def point_cloud_size(config: EnvConfig) -> int:
+    """Rows N of the ``point_cloud`` observation: the tissue's and the needle's points, and the thread's in a scene
+    with one."""
+    pc = config.observation.point_cloud
+    return pc.tissue + pc.needle + (pc.suture if config.suture.node_count else 0)
+
+
+def sensor_spaces(config: EnvConfig) -> dict[str, gym.spaces.Box]:
+    """The spaces of the image or point-cloud keys of ``config``'s ``observation.mode`` (none for ``state``):
+    ``rgb`` ``Box(0, 255, (H, W, 3), uint8)``, ``depth`` ``Box(0, far, (H, W, 1), float32)`` m and
+    ``point_cloud`` ``Box(-POINT_CLOUD_BOUND, POINT_CLOUD_BOUND, (N, 3), float32)`` m."""
+    mode = config.observation.mode
+    cam = config.observation.camera
+    spaces = {}
+    if mode in ("rgb", "rgbd"):
+        spaces["rgb"] = gym.spaces.Box(0, 255, (cam.height, cam.width, 3), np.uint8)
+    if mode in ("depth", "rgbd"):
+        spaces["depth"] = gym.spaces.Box(0.0, cam.far, (cam.height, cam.width, 1), np.float32)
+    if mode == "point_cloud":
+        spaces["point_cloud"] = gym.spaces.Box(-POINT_CLOUD_BOUND, POINT_CLOUD_BOUND, (point_cloud_size(config), 3),
+                                               np.float32)
+    return spaces
 
 
 def main() -> None:

@@ -4,7 +4,9 @@ end-to-end checks that the tasks can be done: the scripted surgeon's bite accura
 thread pulled through in SutureThrow.
 
 Each benchmark builds the env with its default config (``gym.make(id)``, so the registered wrappers are
-timed too), warms up (numba compilation excluded) and then times env steps on one thread. Two workloads:
+timed too; ``env_NeedleInsert_rgb84`` and ``env_NeedleInsert_pointcloud`` with an 84 x 84 RGB image or a point
+cloud as the observation, :data:`OBSERVATION_BENCHMARKS`), warms up (numba compilation excluded) and then
+times env steps on one thread. Two workloads:
 
 * ``env_steps_per_s``: uniformly random actions from a seeded action space, resetting whenever an episode
   ends (the resets' time included), the usual definition;
@@ -72,8 +74,8 @@ def _scripted_run(env: gym.Env, steps: int, seed: int) -> float:
     return time.perf_counter() - start
 
 
-def _bench_env(env_id: str) -> dict:
-    env = gym.make(env_id)
+def _bench_env(env_id: str, config: dict | None = None) -> dict:
+    env = gym.make(env_id, config=config)
     sim = env.unwrapped.sim
     _random_run(env, WARMUP_STEPS, seed=1)
     _scripted_run(env, WARMUP_STEPS, seed=1)
@@ -100,13 +102,24 @@ def _bench_env(env_id: str) -> dict:
         "dt_s": sim.dt,
         "env_id": env_id,
         "workload": "seeded uniform random actions, resets included; scripted: the scripted surgeon at 2 rad/s",
+        **({"config": config} if config else {}),
     }
+
+
+#: The observation modes timed on NeedleInsert beside its state vector: ``env_NeedleInsert_<suffix>``.
+OBSERVATION_BENCHMARKS = {
+    "rgb84": {"observation": {"mode": "rgb", "camera": {"width": 84, "height": 84}}},
+    "pointcloud": {"observation": {"mode": "point_cloud"}},
+}
 
 
 def _register_env_benchmarks() -> None:
     for env_id in ENV_IDS:
         name = "env_" + env_id.split("/")[1].split("-")[0]
         benchmark(name)(lambda env_id=env_id: _bench_env(env_id))
+    for suffix, config in OBSERVATION_BENCHMARKS.items():
+        benchmark(f"env_NeedleInsert_{suffix}")(
+            lambda config=config: _bench_env("SutureGym/NeedleInsert-v2", config))
 
 
 _register_env_benchmarks()

@@ -20,6 +20,7 @@ Pipeline (driven by :class:`suture_gym.render.scene.SceneRenderer`):
    * :func:`raster_capsules`: a polyline drawn as screen-space capsules (a tube seen from the camera) whose
      half-width is the projected radius, at least ``min_half_width_px``.
    * :func:`raster_discs`: filled discs (spheres seen from the camera), depth-tested or always on top.
+   :func:`depth_image` reads the depth plane back in metres (the depth observations).
 3. :func:`shade_resolve` shades every sample (ambient + Lambert + Blinn-Phong, one directional light fixed
    in camera space), box-filters ``k x k`` samples to one output pixel and writes ``uint8`` RGB.
 4. Overlays in output pixels (:mod:`suture_gym.render.overlay`): :func:`blend_rect`,
@@ -581,6 +582,19 @@ def raster_discs(
                 for c in range(3):
                     gb_albedo[py, px, c] = shade * color[m, c]
                 gb_material[py, px] = material_id
+
+
+@njit(cache=True)
+def depth_image(gb_inv_depth, far, out):
+    """Depth image of a G-buffer drawn at the output resolution (no supersampling).
+
+    gb_inv_depth (H,W) float64 1/m; far: float, m; out (H,W,1) float32, written: the depth ``d = 1 / w`` of the
+    nearest fragment (m along the optical axis), or ``far`` where nothing was drawn (``w = 0``).
+    """
+    for y in range(gb_inv_depth.shape[0]):
+        for x in range(gb_inv_depth.shape[1]):
+            w = gb_inv_depth[y, x]
+            out[y, x, 0] = min(1.0 / w, far) if w > 0.0 else far
 
 
 # ----------------------------------------------------------------------------------------------------------

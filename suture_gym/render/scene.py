@@ -15,6 +15,7 @@ from suture_gym.render.camera import Camera, frame_box
 from suture_gym.render.overlay import FONT_GLYPHS, blend_rect, draw_gauge_bar, draw_text, text_glyph_indices, text_size
 from suture_gym.render.raster import (
     clear_gbuffer,
+    depth_image,
     raster_capsules,
     raster_discs,
     raster_triangles,
@@ -306,6 +307,37 @@ class SceneRenderer:
         Raises ValueError (naming the field) for arrays of the wrong shape, triangle indices out of range,
         negative or non-finite radii or thresholds; non-finite positions only skip their primitives.
         """
+        out = np.empty((self.height, self.width, 3), dtype=np.uint8)
+        threshold, view = self._draw(frame, None)
+        shade_resolve(*self._gbuffer, self._materials, self._light, view, self._bg_top, self._bg_bottom, out)
+        self._draw_overlays(frame, threshold, out)
+        return out
+
+    def render_sensor(self, frame: RenderFrame, rgb: bool, depth: bool) -> tuple[np.ndarray | None, np.ndarray | None]:
+        """What a camera sees of ``frame``: ``(rgb, depth)``, each a new array or None when not asked for.
+
+        ``rgb``: ``(height, width, 3) uint8``, as :meth:`render` without the caption and the force gauge.
+        ``depth``: ``(height, width, 1) float32``, m along the optical axis, of the nearest tissue, needle or
+        thread surface at each pixel centre; ``camera.far`` where none is (markers are not part of it).
+        Needs a camera (:meth:`set_camera`) and no supersampling (``ssaa = 1``); ValueError otherwise, and as
+        :meth:`render` for a bad frame.
+        """
+        if self._camera is None:
+            raise ValueError("render_sensor needs a camera: call set_camera or fit_camera first")
+        if self.ssaa != 1:
+            raise ValueError(f"render_sensor draws at the output resolution and needs ssaa = 1, got {self.ssaa}")
+        depth_out = np.empty((self.height, self.width, 1), dtype=np.float32) if depth else None
+        _, view = self._draw(frame, depth_out)
+        rgb_out = None
+        if rgb:
+            rgb_out = np.empty((self.height, self.width, 3), dtype=np.uint8)
+            shade_resolve(*self._gbuffer, self._materials, self._light, view, self._bg_top, self._bg_bottom, rgb_out)
+        return rgb_out, depth_out
+
+    def _draw(self, frame: RenderFrame, depth_out: np.ndarray | None) -> tuple[float, np.ndarray]:
+        """Validate ``frame`` and draw it into the G-buffer (framing the tissue first if there is no camera yet);
+        with ``depth_out`` (``(H, W, 1) float32``) the depth of the tissue, needle and thread is read back into it
+        before the markers are drawn. Returns the gauge's threshold (N) and the view vector of the kernels."""
         if not isinstance(frame, RenderFrame):
             raise ValueError(f"frame must be a RenderFrame, got {type(frame).__name__}")
         tissue_q = _points(frame.tissue_q, "tissue_q", allow_none=False)
@@ -335,8 +367,7 @@ class SceneRenderer:
 
         if self._camera is None and n_vert and np.isfinite(tissue_q).all(axis=1).any():
             self.fit_camera(tissue_q)
-        out = np.empty((self.height, self.width, 3), dtype=np.uint8)
-        gb = (self._gb_inv_depth, self._gb_normal, self._gb_albedo, self._gb_material)
+        gb = self._gbuffer
         clear_gbuffer(self._gb_inv_depth, self._gb_material)
         camera = self._camera
         # Without a camera nothing is drawn and the shading pass only paints the background.
@@ -363,6 +394,8 @@ class SceneRenderer:
                 cam_s = self._buffer(name, len(q))
                 transform_points(rot, eye, q, cam_s)
                 raster_capsules(cam_s, radius, min_half, rgb, mid, view, *gb)
+            if depth_out is not None:
+                depth_image(self._gb_inv_depth, camera.far, depth_out)
             if markers is not None:
                 radius, rgb, on_top = markers
                 cam_m = self._buffer("marker_q", len(marker_q))
@@ -379,9 +412,11 @@ class SceneRenderer:
                     view,
                     *gb,
                 )
-        shade_resolve(*gb, self._materials, self._light, view, self._bg_top, self._bg_bottom, out)
-        self._draw_overlays(frame, threshold, out)
-        return out
+        return threshold, view
+
+    @property
+    def _gbuffer(self) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+        return self._gb_inv_depth, self._gb_normal, self._gb_albedo, self._gb_material
 
     def _marker_arrays(self, frame: RenderFrame, marker_q: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
         """(radius (P,) m, colour (P,3), on_top (P,) bool) of the markers, validated."""
