@@ -388,6 +388,18 @@ def _begin_substep(q: np.ndarray, y: np.ndarray, external: np.ndarray, free: np.
             q[p, i] -= gravity_h2[i] * free[p, i]
 
 
+@njit(cache=True)
+def _stiffness_blocks(q, tet_indices, tet_dm_inv, tet_rest_volume, tet_mu, tet_lambda, blocks) -> None:
+    """:func:`tet_stiffness` of every tet into ``blocks`` (T, 12, 12), N/m (one compiled loop: per tet from
+    Python it cost 6-19 ms on the environments' 960-tet pad, paid again at every reset that draws a new modulus)."""
+    x = np.empty((4, 3))
+    for t in range(tet_indices.shape[0]):
+        for k in range(4):
+            for a in range(3):
+                x[k, a] = q[tet_indices[t, k], a]
+        tet_stiffness(x, tet_dm_inv[t], tet_rest_volume[t], tet_mu[t], tet_lambda[t], blocks[t])
+
+
 def stiffness_matrix(tissue, q: np.ndarray | None = None) -> sp.csr_matrix:
     """Global Hessian of the elastic energy ``d2E/dx dx`` at positions ``q`` (default: the rest shape).
 
@@ -403,12 +415,8 @@ def stiffness_matrix(tissue, q: np.ndarray | None = None) -> sp.csr_matrix:
     q = tissue.particle_rest_q if q is None else np.asarray(q, dtype=np.float64)
     t_count = tissue.tet_count
     blocks = np.empty((t_count, 12, 12))
-    x = np.empty((4, 3))
-    for t in range(t_count):
-        x[:] = q[tissue.tet_indices[t]]
-        tet_stiffness(
-            x, tissue.tet_dm_inv[t], tissue.tet_rest_volume[t], tissue.tet_mu[t], tissue.tet_lambda[t], blocks[t]
-        )
+    _stiffness_blocks(q, tissue.tet_indices, tissue.tet_dm_inv, tissue.tet_rest_volume, tissue.tet_mu,
+                      tissue.tet_lambda, blocks)  # fmt: skip
     dof = (3 * tissue.tet_indices[:, :, None] + np.arange(3)[None, None, :]).reshape(t_count, 12)
     rows = np.repeat(dof, 12, axis=1).ravel()
     cols = np.tile(dof, (1, 12)).ravel()
