@@ -400,6 +400,25 @@ def _stiffness_blocks(q, tet_indices, tet_dm_inv, tet_rest_volume, tet_mu, tet_l
         tet_stiffness(x, tet_dm_inv[t], tet_rest_volume[t], tet_mu[t], tet_lambda[t], blocks[t])
 
 
+@njit(cache=True)
+def _gather(flat: np.ndarray, index: np.ndarray, out: np.ndarray) -> np.ndarray:
+    """``out[k] = flat[index[k]]``; returns ``out`` (numpy's fancy indexing, without its per-call overhead)."""
+    for k in range(index.shape[0]):
+        out[k] = flat[index[k]]
+    return out
+
+
+@njit(cache=True)
+def _add_at(flat: np.ndarray, index: np.ndarray, step: np.ndarray, sign: float) -> float:
+    """``flat[index] += sign * step`` (``sign`` +1 or -1, so the sums are numpy's bit for bit); returns
+    ``max |step|`` (0 for none)."""
+    largest = 0.0
+    for k in range(index.shape[0]):
+        flat[index[k]] += sign * step[k]
+        largest = max(largest, abs(step[k]))
+    return largest
+
+
 def stiffness_matrix(tissue, q: np.ndarray | None = None) -> sp.csr_matrix:
     """Global Hessian of the elastic energy ``d2E/dx dx`` at positions ``q`` (default: the rest shape).
 
@@ -535,11 +554,16 @@ class ImplicitTissue:
         self.free_mask = self.free.astype(np.float64)
         #: Tets with a free node, ascending: the only ones whose energy changes.
         self.active_tets = np.flatnonzero(self.free[tissue.tet_indices].any(axis=(1, 2))).astype(np.int32)
+        self._free_particle = self.free.any(axis=1)
+        self._free_grad = np.zeros(self.free_index.size)
         self.y = np.zeros((tissue.particle_count, 3))
         self.grad = np.zeros((tissue.particle_count, 3))
         self.external = np.zeros((tissue.particle_count, 3))
         #: Whether the coupling rows moved the tissue since the substep's last elastic solve.
         self.rows_moved = False
+        #: Whether a sweep of this substep found nothing left for the later ones (set by the solver, see
+        #: :meth:`~suture_gym.sim.solver.Solver._project`).
+        self.sweeps_done = False
         #: Whether the substep's last solve ended on a step it did not test for convergence although it was large
         #: (a :class:`QuasiNewton` solve with ``converge`` off): the substep's last sweep must solve again.
         self.unconverged = False
@@ -561,6 +585,7 @@ class ImplicitTissue:
         q[self.tissue.roller_particle, self.roller_axis] = self.roller_value
         self.rows_moved = False
         self.unconverged = False
+        self.sweeps_done = False
         _begin_substep(q, self.y, self.external, self.free_mask, gravity * (self.dt * self.dt))
 
     def potential(self, q: np.ndarray, with_gradient: bool = True) -> float:
@@ -579,7 +604,7 @@ class ImplicitTissue:
         the vertices the rows act on), gathered from cached columns of ``A0^-1`` (``A0`` is constant, so each
         particle's columns are solved for once). Resets the impulse sum :meth:`propagate_rows` spreads."""
         self._impulse[...] = 0.0
-        vertices = np.flatnonzero(touched & self.free.any(axis=1)).astype(np.int32)
+        vertices = np.flatnonzero(touched & self._free_particle).astype(np.int32)
         if np.array_equal(vertices, self.compliance[2]):  # the same vertices as last substep: the same matrix
             return self.compliance
         self._slot[:] = -1
@@ -632,7 +657,8 @@ class ImplicitTissue:
             return
         flat = q.reshape(-1)
         flat[...] = q_before.reshape(-1)
-        flat[self.free_index] += self.factor.solve(impulse.reshape(-1)[self.free_index]) * self.inv_h2
+        spread = self.factor.solve(_gather(impulse.reshape(-1), self.free_index, self._free_grad)) * self.inv_h2
+        _add_at(flat, self.free_index, spread, 1.0)
         self.external += impulse * self.inv_h2
         impulse[...] = 0.0
 
@@ -663,24 +689,24 @@ class QuasiNewton(ImplicitTissue):
         converged = CONVERGED_SPEED * self.dt
         self.unconverged = False
         for iteration in range(iterations + MAX_EXTRA_ITERATIONS):
-            step = -self.factor.solve(self.grad.reshape(-1)[free])
+            step = self.factor.solve(_gather(self.grad.reshape(-1), free, self._free_grad))
             size = np.max(np.abs(step), initial=0.0)
             if iteration >= iterations and not size > converged:
                 return
             large = iteration == iterations - 1 and size > self.large_step
             self.unconverged = large and not converge
             test_next = iteration != iterations - 1 or (large and converge)
-            flat[free] += step
+            _add_at(flat, free, step, -1.0)  # the step is -A0^-1 grad
             trial = self.potential(q, test_next)
             bound = phi + ROUNDOFF * abs(phi)
             halvings = 0
             while not trial <= bound and halvings < MAX_HALVINGS:
                 step *= 0.5
-                flat[free] -= step
+                _add_at(flat, free, step, 1.0)
                 trial = self.potential(q, test_next)
                 halvings += 1
             if not trial <= bound:
-                flat[free] -= step
+                _add_at(flat, free, step, 1.0)
                 return
             phi = trial
             if not test_next:
