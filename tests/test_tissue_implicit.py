@@ -328,3 +328,13 @@ def test_a_state_can_change_integrator_between_steps_and_its_rows_follow():
     assert work.compliance is not work.diagonal_compliance
     Solver().step(scene.model, scene.state, Control(), 1e-3)
     assert work.compliance is work.diagonal_compliance
+
+
+def test_a_sweep_whose_rows_moved_nothing_ends_the_substep():
+    """With the needle clear of the pad the first sweep's rows move nothing: it does the suture's solve itself and
+    the second sweep is skipped; pressed into the pad, the rows act in every substep and both sweeps run."""
+    solver = Solver(tissue_integrator="quasi_newton", iterations=2)
+    clear, _ = _press(1.0e5, 0.0, solver, seconds=0.01)
+    assert clear.state.work.tissue_integrator("quasi_newton", 1e-3).sweeps_done
+    pressed, _ = _press(1.0e5, 1.0, solver, seconds=0.1)
+    assert not pressed.state.work.tissue_integrator("quasi_newton", 1e-3).sweeps_done

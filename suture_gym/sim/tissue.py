@@ -384,6 +384,18 @@ def xpbd_stability_number(tissue, dt: float) -> float:
 
 
 @njit(cache=True)
+def supports_violated(inv_mass: np.ndarray, normal: np.ndarray, offset: np.ndarray, q: np.ndarray) -> bool:
+    """Whether :func:`project_supports` would move any particle (a free one with ``n . x < d``); same arguments."""
+    for s in range(normal.shape[0]):
+        for p in range(q.shape[0]):
+            if inv_mass[p] == 0.0:
+                continue
+            if normal[s, 0] * q[p, 0] + normal[s, 1] * q[p, 1] + normal[s, 2] * q[p, 2] - offset[s] < 0.0:
+                return True
+    return False
+
+
+@njit(cache=True)
 def project_supports(inv_mass: np.ndarray, normal: np.ndarray, offset: np.ndarray, q: np.ndarray) -> None:
     """Rigid, frictionless, one-sided supports: every free particle with ``n . x < d`` is moved onto the plane
     (``x -= (n . x - d) n``); the support has infinite mass, so the whole correction goes to the particle.

@@ -193,18 +193,6 @@ def tet_stiffness(x: np.ndarray, dm_inv: np.ndarray, volume: float, mu: float, l
                     k_out[3 * k + a, 3 * n + b] = volume * s
 
 
-@njit(cache=True, inline="always")
-def _scatter_stress_row(grad_out, free, nodes, axis, p0, p1, p2, dm):
-    """Add row ``axis`` of ``V0 P Dm^-T`` (the elastic force of one tet, N) to the gradient of its free dofs."""
-    g1 = p0 * dm[0, 0] + p1 * dm[0, 1] + p2 * dm[0, 2]
-    g2 = p0 * dm[1, 0] + p1 * dm[1, 1] + p2 * dm[1, 2]
-    g3 = p0 * dm[2, 0] + p1 * dm[2, 1] + p2 * dm[2, 2]
-    grad_out[nodes[1], axis] += g1 * free[nodes[1], axis]
-    grad_out[nodes[2], axis] += g2 * free[nodes[2], axis]
-    grad_out[nodes[3], axis] += g3 * free[nodes[3], axis]
-    grad_out[nodes[0], axis] -= (g1 + g2 + g3) * free[nodes[0], axis]
-
-
 @njit(cache=True)
 def incremental_potential(
     q: np.ndarray,
@@ -283,11 +271,36 @@ def incremental_potential(
         total += volume * (0.5 * mu * (norm2 - 3.0) + 0.5 * lam * ((det - gamma) ** 2 - (1.0 - gamma) ** 2))
         if not with_gradient:
             continue
+        # The elastic force V0 P Dm^-T on nodes 1..3 (node 0 takes minus their sum), all computed before the
+        # node-by-node stores: stores interleaved with the loads cost ~40% more.
         vm = volume * mu
         vs = volume * lam * (det - gamma)
-        _scatter_stress_row(grad_out, free, nodes, 0, vm * f00 + vs * k00, vm * f01 + vs * k01, vm * f02 + vs * k02, dm)
-        _scatter_stress_row(grad_out, free, nodes, 1, vm * f10 + vs * k10, vm * f11 + vs * k11, vm * f12 + vs * k12, dm)
-        _scatter_stress_row(grad_out, free, nodes, 2, vm * f20 + vs * k20, vm * f21 + vs * k21, vm * f22 + vs * k22, dm)
+        d00, d01, d02 = dm[0, 0], dm[0, 1], dm[0, 2]
+        d10, d11, d12 = dm[1, 0], dm[1, 1], dm[1, 2]
+        d20, d21, d22 = dm[2, 0], dm[2, 1], dm[2, 2]
+        p0, p1, p2 = vm * f00 + vs * k00, vm * f01 + vs * k01, vm * f02 + vs * k02
+        x1, x2, x3 = p0 * d00 + p1 * d01 + p2 * d02, p0 * d10 + p1 * d11 + p2 * d12, p0 * d20 + p1 * d21 + p2 * d22
+        p0, p1, p2 = vm * f10 + vs * k10, vm * f11 + vs * k11, vm * f12 + vs * k12
+        y1, y2, y3 = p0 * d00 + p1 * d01 + p2 * d02, p0 * d10 + p1 * d11 + p2 * d12, p0 * d20 + p1 * d21 + p2 * d22
+        p0, p1, p2 = vm * f20 + vs * k20, vm * f21 + vs * k21, vm * f22 + vs * k22
+        z1, z2, z3 = p0 * d00 + p1 * d01 + p2 * d02, p0 * d10 + p1 * d11 + p2 * d12, p0 * d20 + p1 * d21 + p2 * d22
+        n1, n2, n3 = nodes[1], nodes[2], nodes[3]
+        grad_out[n1, 0] += x1
+        grad_out[n1, 1] += y1
+        grad_out[n1, 2] += z1
+        grad_out[n2, 0] += x2
+        grad_out[n2, 1] += y2
+        grad_out[n2, 2] += z2
+        grad_out[n3, 0] += x3
+        grad_out[n3, 1] += y3
+        grad_out[n3, 2] += z3
+        grad_out[n0, 0] -= x1 + x2 + x3
+        grad_out[n0, 1] -= y1 + y2 + y3
+        grad_out[n0, 2] -= z1 + z2 + z3
+    if with_gradient:  # held dofs took forces above: masked once here
+        for p in range(q.shape[0]):
+            for i in range(3):
+                grad_out[p, i] *= free[p, i]
     return total
 
 
@@ -388,6 +401,37 @@ def _begin_substep(q: np.ndarray, y: np.ndarray, external: np.ndarray, free: np.
             q[p, i] -= gravity_h2[i] * free[p, i]
 
 
+@njit(cache=True)
+def _stiffness_blocks(q, tet_indices, tet_dm_inv, tet_rest_volume, tet_mu, tet_lambda, blocks) -> None:
+    """:func:`tet_stiffness` of every tet into ``blocks`` (T, 12, 12), N/m (one compiled loop: per tet from
+    Python it cost 6-19 ms on the environments' 960-tet pad, paid again at every reset that draws a new modulus)."""
+    x = np.empty((4, 3))
+    for t in range(tet_indices.shape[0]):
+        for k in range(4):
+            for a in range(3):
+                x[k, a] = q[tet_indices[t, k], a]
+        tet_stiffness(x, tet_dm_inv[t], tet_rest_volume[t], tet_mu[t], tet_lambda[t], blocks[t])
+
+
+@njit(cache=True)
+def _gather(flat: np.ndarray, index: np.ndarray, out: np.ndarray) -> np.ndarray:
+    """``out[k] = flat[index[k]]``; returns ``out`` (numpy's fancy indexing, without its per-call overhead)."""
+    for k in range(index.shape[0]):
+        out[k] = flat[index[k]]
+    return out
+
+
+@njit(cache=True)
+def _add_at(flat: np.ndarray, index: np.ndarray, step: np.ndarray, sign: float) -> float:
+    """``flat[index] += sign * step`` (``sign`` +1 or -1, so the sums are numpy's bit for bit); returns
+    ``max |step|`` (0 for none)."""
+    largest = 0.0
+    for k in range(index.shape[0]):
+        flat[index[k]] += sign * step[k]
+        largest = max(largest, abs(step[k]))
+    return largest
+
+
 def stiffness_matrix(tissue, q: np.ndarray | None = None) -> sp.csr_matrix:
     """Global Hessian of the elastic energy ``d2E/dx dx`` at positions ``q`` (default: the rest shape).
 
@@ -403,12 +447,8 @@ def stiffness_matrix(tissue, q: np.ndarray | None = None) -> sp.csr_matrix:
     q = tissue.particle_rest_q if q is None else np.asarray(q, dtype=np.float64)
     t_count = tissue.tet_count
     blocks = np.empty((t_count, 12, 12))
-    x = np.empty((4, 3))
-    for t in range(t_count):
-        x[:] = q[tissue.tet_indices[t]]
-        tet_stiffness(
-            x, tissue.tet_dm_inv[t], tissue.tet_rest_volume[t], tissue.tet_mu[t], tissue.tet_lambda[t], blocks[t]
-        )
+    _stiffness_blocks(q, tissue.tet_indices, tissue.tet_dm_inv, tissue.tet_rest_volume, tissue.tet_mu,
+                      tissue.tet_lambda, blocks)  # fmt: skip
     dof = (3 * tissue.tet_indices[:, :, None] + np.arange(3)[None, None, :]).reshape(t_count, 12)
     rows = np.repeat(dof, 12, axis=1).ravel()
     cols = np.tile(dof, (1, 12)).ravel()
@@ -527,11 +567,16 @@ class ImplicitTissue:
         self.free_mask = self.free.astype(np.float64)
         #: Tets with a free node, ascending: the only ones whose energy changes.
         self.active_tets = np.flatnonzero(self.free[tissue.tet_indices].any(axis=(1, 2))).astype(np.int32)
+        self._free_particle = self.free.any(axis=1)
+        self._free_grad = np.zeros(self.free_index.size)
         self.y = np.zeros((tissue.particle_count, 3))
         self.grad = np.zeros((tissue.particle_count, 3))
         self.external = np.zeros((tissue.particle_count, 3))
         #: Whether the coupling rows moved the tissue since the substep's last elastic solve.
         self.rows_moved = False
+        #: Whether a sweep of this substep found nothing left for the later ones (set by the solver, see
+        #: :meth:`~suture_gym.sim.solver.Solver._project`).
+        self.sweeps_done = False
         #: Whether the substep's last solve ended on a step it did not test for convergence although it was large
         #: (a :class:`QuasiNewton` solve with ``converge`` off): the substep's last sweep must solve again.
         self.unconverged = False
@@ -553,6 +598,7 @@ class ImplicitTissue:
         q[self.tissue.roller_particle, self.roller_axis] = self.roller_value
         self.rows_moved = False
         self.unconverged = False
+        self.sweeps_done = False
         _begin_substep(q, self.y, self.external, self.free_mask, gravity * (self.dt * self.dt))
 
     def potential(self, q: np.ndarray, with_gradient: bool = True) -> float:
@@ -571,7 +617,7 @@ class ImplicitTissue:
         the vertices the rows act on), gathered from cached columns of ``A0^-1`` (``A0`` is constant, so each
         particle's columns are solved for once). Resets the impulse sum :meth:`propagate_rows` spreads."""
         self._impulse[...] = 0.0
-        vertices = np.flatnonzero(touched & self.free.any(axis=1)).astype(np.int32)
+        vertices = np.flatnonzero(touched & self._free_particle).astype(np.int32)
         if np.array_equal(vertices, self.compliance[2]):  # the same vertices as last substep: the same matrix
             return self.compliance
         self._slot[:] = -1
@@ -624,7 +670,8 @@ class ImplicitTissue:
             return
         flat = q.reshape(-1)
         flat[...] = q_before.reshape(-1)
-        flat[self.free_index] += self.factor.solve(impulse.reshape(-1)[self.free_index]) * self.inv_h2
+        spread = self.factor.solve(_gather(impulse.reshape(-1), self.free_index, self._free_grad)) * self.inv_h2
+        _add_at(flat, self.free_index, spread, 1.0)
         self.external += impulse * self.inv_h2
         impulse[...] = 0.0
 
@@ -655,24 +702,24 @@ class QuasiNewton(ImplicitTissue):
         converged = CONVERGED_SPEED * self.dt
         self.unconverged = False
         for iteration in range(iterations + MAX_EXTRA_ITERATIONS):
-            step = -self.factor.solve(self.grad.reshape(-1)[free])
+            step = self.factor.solve(_gather(self.grad.reshape(-1), free, self._free_grad))
             size = np.max(np.abs(step), initial=0.0)
             if iteration >= iterations and not size > converged:
                 return
             large = iteration == iterations - 1 and size > self.large_step
             self.unconverged = large and not converge
             test_next = iteration != iterations - 1 or (large and converge)
-            flat[free] += step
+            _add_at(flat, free, step, -1.0)  # the step is -A0^-1 grad
             trial = self.potential(q, test_next)
             bound = phi + ROUNDOFF * abs(phi)
             halvings = 0
             while not trial <= bound and halvings < MAX_HALVINGS:
                 step *= 0.5
-                flat[free] -= step
+                _add_at(flat, free, step, 1.0)
                 trial = self.potential(q, test_next)
                 halvings += 1
             if not trial <= bound:
-                flat[free] -= step
+                _add_at(flat, free, step, 1.0)
                 return
             phi = trial
             if not test_next:
