@@ -444,6 +444,23 @@ def test_matching_states_and_rows_while_the_needle_is_through():
     assert rows["access_rest"][0] == pytest.approx(2 * half)
 
 
+
+def test_the_strand_end_stays_in_its_path_once_it_has_gone_in_through_the_entry():
+    """The entry coordinate cannot pass the strand's end, so once the end (here the swage of a needle without
+    thread; a thread's free end alike) has gone in through the entry, ``sigma_entry`` sits on it. The end node,
+    inside the tissue, must stay IN its path with a node-path row: as OUT it got a contact row from the inside,
+    which kicked it at the surface (a thread's free end pulled through a pad pulled 1-12 N with no friction and
+    diverged)."""
+    model, _, _, log = _sweep(angles=np.linspace(0.0, 2 * math.pi - 0.1, 700))
+    end = model.strand_sigma[-1]
+    inside = [(s, rows) for _, s, _, rows, _ in log
+              if s.path_count == 1 and not s.path_open[0] and s.path_sigma_entry[0] == end
+              and s.strand_sdist[-1] < 0.0]  # fmt: skip
+    assert len(inside) >= 10
+    for state, rows in inside:
+        assert state.strand_status[-1] == NODE_IN and state.strand_path[-1] == 0
+        assert rows["row_kind"][-1] == ROW_PATH
+
 def test_no_puncture_below_the_threshold_keeps_the_tip_anchored():
     tissue = _block_tissue()
     needle = NeedleModel.from_shape()
