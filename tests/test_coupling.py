@@ -444,7 +444,6 @@ def test_matching_states_and_rows_while_the_needle_is_through():
     assert rows["access_rest"][0] == pytest.approx(2 * half)
 
 
-
 def test_the_strand_end_stays_in_its_path_once_it_has_gone_in_through_the_entry():
     """The entry coordinate cannot pass the strand's end, so once the end (here the swage of a needle without
     thread; a thread's free end alike) has gone in through the entry, ``sigma_entry`` sits on it. The end node,
@@ -460,6 +459,7 @@ def test_the_strand_end_stays_in_its_path_once_it_has_gone_in_through_the_entry(
     for state, rows in inside:
         assert state.strand_status[-1] == NODE_IN and state.strand_path[-1] == 0
         assert rows["row_kind"][-1] == ROW_PATH
+
 
 def test_no_puncture_below_the_threshold_keeps_the_tip_anchored():
     tissue = _block_tissue()

@@ -253,9 +253,10 @@ def suture_friction_rows(needle_node_count, friction_rows, tissue_q, tissue, sut
     path point's inverse mass along ``t`` (1/kg) and ``out_cap`` the bound (kg m); nodes without such a row get
     ``out_cap = 0``. A friction row, once made, stays for the substep's later iterations; a node without one
     whose static obstacle's contact row is violated (``out_gap < 0``, from
-    :func:`~suture_gym.sim.rod.rod_detect_contacts`) keeps that row instead. A static obstacle gives every free node a finite gap however far it is (the base
-    under a pad: the node's height), so a finite gap alone must not keep the friction row out: it did, and with
-    the base as the thread's obstacle the thread had no friction at all.
+    :func:`~suture_gym.sim.rod.rod_detect_contacts`) keeps that row instead. A static obstacle gives every free
+    node a finite gap however far it is (the base under a pad: the node's height), so a finite gap alone must
+    not keep the friction row out: it did, and with the base as the thread's obstacle the thread had no
+    friction at all.
 
     The friction has to be in the rod's solve: the thread node is 3e-8 kg along its path, so a friction
     impulse applied outside the solve is undone by the solve's inextensibility at no cost to the needle, and
