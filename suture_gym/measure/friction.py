@@ -36,7 +36,7 @@ from suture_gym.sim.scenes import Scene, add_strands, needle_circle_pose, suturi
 from suture_gym.tasks.suture_throw import SutureThrow
 
 FRICTION = 30.0  # N/m: 0.72 N over the pad's 24 mm (suture drag through tissue: 0.1-1 N over a stitch)
-SPEED = 0.02  # m/s: the scripted surgeon's pull settles at about 1.5 cm/s
+SPEED = 0.02  # m/s: the scripted surgeon's needle draws the thread at about 0.8 cm/s (SutureThrow-v2, seed 0)
 NEEDLE_RADIUS = 1.0  # m: the needle's 26 mm arc is 8.5e-5 m off straight
 #: The holder: so heavy that the tissue cannot change its motion (a position-controlled robot).
 HOLDER = {"holder_mass": 1.0e3, "holder_inertia": 10.0}
@@ -58,7 +58,8 @@ ZERO_FRICTION_TOLERANCE = 0.01
 def friction_pad(friction: float) -> tuple[Scene, dict]:
     """The environments' default pad with the straight needle in front of its face ``y = 0`` (module
     docstring), SutureThrow's thread trailing behind it along ``-y``, and the environments' coupling with
-    ``suture_axial_friction = friction`` N/m. Returns the scene and the solver config."""
+    ``suture_axial_friction = friction`` N/m. Returns the scene and the configs it used, ``{"scene":
+    SceneConfig, "tissue": TissueConfig, "solver": SolverConfig}``."""
     scene_cfg, tissue = SceneConfig(), TissueConfig()
     cells = tuple(int(round(s / scene_cfg.cell_size)) for s in scene_cfg.size)
     base = suturing_pad(size=scene_cfg.size, cells=cells, material=tissue)
