@@ -12,6 +12,7 @@ from suture_gym.sim.coupling import (
     NODE_HEAD,
     NODE_IN,
     NODE_OUT,
+    PATH_ROW_VERTICES,
     ROW_ANCHOR,
     ROW_NONE,
     ROW_PATH,
@@ -35,6 +36,7 @@ from suture_gym.sim.coupling import (
     project_onto_path,
     surface_normal,
     suture_contact_rows,
+    suture_friction_rows,
     track_sigma,
     xpbd_delta_lambda,
 )
@@ -442,6 +444,23 @@ def test_matching_states_and_rows_while_the_needle_is_through():
     assert rows["access_rest"][0] == pytest.approx(2 * half)
 
 
+def test_the_strand_end_stays_in_its_path_once_it_has_gone_in_through_the_entry():
+    """The entry coordinate cannot pass the strand's end, so once the end (here the swage of a needle without
+    thread; a thread's free end alike) has gone in through the entry, ``sigma_entry`` sits on it. The end node,
+    inside the tissue, must stay IN its path with a node-path row: as OUT it got a contact row from the inside,
+    which kicked it at the surface (a thread's free end pulled through a pad pulled 1-12 N with no friction and
+    diverged)."""
+    model, _, _, log = _sweep(angles=np.linspace(0.0, 2 * math.pi - 0.1, 700))
+    end = model.strand_sigma[-1]
+    inside = [(s, rows) for _, s, _, rows, _ in log
+              if s.path_count == 1 and not s.path_open[0] and s.path_sigma_entry[0] == end
+              and s.strand_sdist[-1] < 0.0]  # fmt: skip
+    assert len(inside) >= 10
+    for state, rows in inside:
+        assert state.strand_status[-1] == NODE_IN and state.strand_path[-1] == 0
+        assert rows["row_kind"][-1] == ROW_PATH
+
+
 def test_no_puncture_below_the_threshold_keeps_the_tip_anchored():
     tissue = _block_tissue()
     needle = NeedleModel.from_shape()
@@ -816,3 +835,28 @@ def test_a_suture_node_gets_the_more_violated_of_its_tissue_row_and_a_static_obs
     z[1, 6] = 1.0e-9  # the tissue row's push on node 1 is
     apply_contact_reaction(nn, rows, tri_vertices, normal, z, is_tissue, tissue, row_lambda, moved)
     assert row_lambda[1] == 1.0e-9 and np.all(moved[:, 1] < 0.0)
+
+
+def test_a_path_node_gets_its_friction_row_unless_a_static_obstacle_holds_it():
+    """Thread friction rows beside a static obstacle (the base under a pad): the obstacle gives every free node
+    a finite gap however far it is, which kept every friction row out (the thread had no friction in any scene
+    with a base). A path node above the base (gap > 0) gets its friction row along the path's tangent with the
+    cap ``strand_friction dt^2``; one sunk into the base (gap < 0) keeps the obstacle's contact row."""
+    nn, dt = 1, 1.0e-3
+    row_kind = np.array([ROW_NONE, ROW_PATH, ROW_PATH], dtype=np.int8)
+    row_tissue = np.zeros((3, PATH_ROW_VERTICES), np.int32)
+    row_weight = np.zeros((3, PATH_ROW_VERTICES))
+    row_weight[:, 0] = 1.0
+    row_tangent = np.tile([0.0, 1.0, 0.0], (3, 1))
+    strand_friction = np.array([0.0, 0.03, 0.03])  # N: 30 N/m times 1 mm of thread
+    suture_q = np.array([[0.0, -1e-3, 4e-3], [0.0, 1e-3, 4e-3], [0.0, 2e-3, 4e-3]])
+    tissue_q = np.zeros((1, 3))
+    rows = (strand_friction, row_kind, row_tissue, row_weight, row_tangent, suture_q.copy(), tissue_q.copy(), dt)
+    obstacle_gap = np.array([4e-3, 4e-3, -1e-5])  # the base 4 mm below nodes 0 and 1; node 2 sunk into it
+    gap, normal = obstacle_gap.copy(), np.tile([0.0, 0.0, 1.0], (3, 1))
+    tissue_w, cap = np.zeros(3), np.zeros(3)
+    suture_friction_rows(nn, rows, tissue_q, diagonal(np.full(1, 2.0)), suture_q, gap, normal, tissue_w, cap)
+    assert cap[1] == pytest.approx(0.03 * dt * dt) and gap[1] == 0.0 and normal[1] == pytest.approx([0.0, 1.0, 0.0])
+    assert tissue_w[1] == pytest.approx(2.0)
+    assert cap[2] == 0.0 and gap[2] == obstacle_gap[2] and normal[2] == pytest.approx([0.0, 0.0, 1.0])
+    assert cap[0] == 0.0 and gap[0] == obstacle_gap[0]

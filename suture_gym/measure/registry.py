@@ -22,6 +22,7 @@ MODULES: tuple[str, ...] = (
     "suture_gym.measure.puncture",
     "suture_gym.measure.support",
     "suture_gym.measure.insertion",
+    "suture_gym.measure.friction",
     "suture_gym.measure.collision",
     "suture_gym.measure.render",
     "suture_gym.measure.envs",

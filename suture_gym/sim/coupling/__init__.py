@@ -17,9 +17,11 @@ Detection (once per substep, after the prediction; :func:`coupling_detect`)
 2. Matching (paper section 4.1, made continuous): each path records the strand coordinates ``sigma_entry``
    and ``sigma_exit`` of the strand points passing through its entry and exit access points, re-found every
    substep as the strand point nearest the access point within ``track_window`` of the previous value.
-   A strand node with ``sigma_exit <= sigma < sigma_entry`` is IN that path. Paths are made tip first, so
-   the newest path holds the front of the strand, as in the paper; unlike a per-substep re-matching of
-   segments, the coordinates move continuously and cannot swap paths when two strand segments come close.
+   A strand node with ``sigma_exit <= sigma < sigma_entry`` is IN that path; so is the strand's last node at
+   ``sigma = sigma_entry``, where the entry coordinate stops once the thread's free end has gone in. Paths
+   are made tip first, so the newest path holds the front of the strand, as in the paper; unlike a
+   per-substep re-matching of segments, the coordinates move continuously and cannot swap paths when two
+   strand segments come close.
 3. Puncture: while no path is open, the tip is held out of the tissue by its *anchor*: the surface point it
    first comes within ``eps + contact_margin`` of (triangle + barycentric coordinates, a material point),
    kept while the tip stays within that band of it along the normal. The anchor row is paper eq. 2 against

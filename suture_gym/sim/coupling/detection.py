@@ -137,8 +137,10 @@ def _in_access_piece(i, n_access, access_node, access_weight):
 def build_node_rows(sigma, strand_q, sdist, strand_tri, row_band, paths, pathnodes, tet_indices, access, n_access,
                     suture_skip, out_status, out_path, rows):  # fmt: skip
     """Node states and constraint rows of every strand node (module docstring, detection step 8): the HEAD of
-    an open path none; nodes matched to a path (``sigma_exit <= sigma < sigma_entry``) a node-path row
-    (:func:`_path_row`); others a node-triangle row with their closest triangle when their signed distance
+    an open path none; nodes matched to a path (``sigma_exit <= sigma < sigma_entry``, or ``<= sigma_entry``
+    for the strand's last node: the entry coordinate cannot pass the free end, so once the thread's end has
+    gone in through the entry it stays at the end, and the end node, inside the tissue, is still in the path) a
+    node-path row (:func:`_path_row`); others a node-triangle row with their closest triangle when their signed distance
     is below ``row_band`` (m), unless they carry one of the ``n_access`` node-access rows or are suture nodes
     (from strand index ``suture_skip[0]``) whose closest triangle lies on a support (``suture_skip[1]`` (F,)
     bool, ``CouplingModel.tri_on_support``: the base is the suture's obstacle there).
@@ -161,9 +163,10 @@ def build_node_rows(sigma, strand_q, sdist, strand_tri, row_band, paths, pathnod
             out_path[0] = path_count - 1  # the HEAD cuts its way: no row
             continue
         matched = -1
+        last = i == sigma.shape[0] - 1
         for k in range(path_count):
             lo = -np.inf if path_open[k] else sigma_exit[k]
-            if lo <= sigma[i] < sigma_entry[k]:
+            if lo <= sigma[i] < sigma_entry[k] or (last and lo <= sigma[i] == sigma_entry[k]):
                 matched = k
                 break
         if matched >= 0:

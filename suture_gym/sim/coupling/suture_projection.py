@@ -251,7 +251,12 @@ def suture_friction_rows(needle_node_count, friction_rows, tissue_q, tissue, sut
     since the substep began, m), held at 0 while its multiplier stays within ``strand_friction dt^2`` (the
     thread sticks) and at that bound otherwise (it slides against a constant force). ``out_tissue_w`` gets the
     path point's inverse mass along ``t`` (1/kg) and ``out_cap`` the bound (kg m); nodes without such a row get
-    ``out_cap = 0``, and a static obstacle's contact row (finite ``out_gap`` not written here) is kept.
+    ``out_cap = 0``. A friction row, once made, stays for the substep's later iterations; a node without one
+    whose static obstacle's contact row is violated (``out_gap < 0``, from
+    :func:`~suture_gym.sim.rod.rod_detect_contacts`) keeps that row instead. A static obstacle gives every free
+    node a finite gap however far it is (the base under a pad: the node's height), so a finite gap alone must
+    not keep the friction row out: it did, and with the base as the thread's obstacle the thread had no
+    friction at all.
 
     The friction has to be in the rod's solve: the thread node is 3e-8 kg along its path, so a friction
     impulse applied outside the solve is undone by the solve's inextensibility at no cost to the needle, and
@@ -272,7 +277,7 @@ def suture_friction_rows(needle_node_count, friction_rows, tissue_q, tissue, sut
         i = nn + j - 1
         was_friction = out_cap[j] > 0.0
         out_cap[j] = 0.0
-        if row_kind[i] != ROW_PATH or strand_friction[i] <= 0.0 or (np.isfinite(out_gap[j]) and not was_friction):
+        if row_kind[i] != ROW_PATH or strand_friction[i] <= 0.0 or (out_gap[j] < 0.0 and not was_friction):
             if was_friction:
                 out_gap[j] = np.inf
             continue
