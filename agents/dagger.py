@@ -11,8 +11,11 @@ Iteration ``i`` (0-based) runs ``episodes_per_iteration`` episodes in which each
 oracle's with probability ``beta * beta_decay ** i`` and the learner's (deterministic mean) otherwise; every
 visited observation is stored with the oracle's label. After each iteration the policy's mean is refitted on all
 the data so far (:func:`agents.imitation.behaviour_clone`, which also fits the value head to the rollouts'
-returns, so PPO can fine-tune the result). An episode whose needle has stopped moving ends early
-(:data:`STALL_DISTANCE`) and counts as a failure. With the default ``beta_decay: 0`` iteration 0 is the expert's
+returns, so PPO can fine-tune the result); with ``normalize``, the observation statistics are those of all the
+data so far, updated before each refit (statistics of the expert's states alone make the learner's own states
+extreme: the needle's off-plane coordinates vary by 16 um in the expert's SutureThrow episodes). An episode
+whose needle has stopped moving ends early (:data:`STALL_DISTANCE`) and counts as a failure. With the default
+``beta_decay: 0`` iteration 0 is the expert's
 demonstrations and every later iteration is the learner alone: its episodes are then an evaluation of the
 policy fitted one iteration before, on env seeds no other iteration uses, and they are the run's learning curve.
 
@@ -120,6 +123,7 @@ def train_dagger(env_id: str, seed: int, run_dir: Path, total: int, script: dict
     vec_env = DummyVecEnv([lambda: env])
     if normalize:
         vec_env = VecNormalize(vec_env, **norm_kwargs)
+        vec_env.training = False  # its statistics are updated with each iteration's data below, not by stepping
     model = PPO(script["policy"], vec_env, seed=seed, device="cpu", verbose=0, **kwargs)
     oracle = FeedbackExpert(env, lead=settings["lead"])
     rng = np.random.default_rng(seed)
@@ -171,11 +175,11 @@ def train_dagger(env_id: str, seed: int, run_dir: Path, total: int, script: dict
             seeds.append(env_seed)
         demos = {"observations": np.asarray(columns["observations"]), "actions": np.asarray(columns["actions"]),
                  "rewards": np.asarray(columns["rewards"]), "episode_starts": np.asarray(starts)}
+        if normalize:  # the statistics of all the data so far: the expert's states and the learner's
+            vec_env.obs_rms.update(demos["observations"][starts[-len(returns)]:])
         fit = behaviour_clone(model, demos, epochs=settings["epochs"], batch_size=settings["batch_size"],
                               learning_rate=settings["learning_rate"], seed=seed + iteration,
-                              update_statistics=iteration == 0)
-        if normalize:
-            vec_env.training = False  # statistics of the expert's states, then frozen
+                              update_statistics=False)
         model.save(run_dir / "checkpoints" / f"model_{steps}_steps.zip")
         if normalize:
             vec_env.save(str(run_dir / "checkpoints" / f"model_vecnormalize_{steps}_steps.pkl"))

@@ -23,7 +23,13 @@ import gymnasium as gym
 import numpy as np
 
 from agents.datasets import RecordedEpisode
-from suture_gym.tasks.surgeon import ScriptedSurgeon, swage_out_angle
+from suture_gym.tasks.surgeon import (
+    PULL_DAMPING_PER_MAX_FORCE,
+    PULL_FORCE_PER_MAX_FORCE,
+    ScriptedSurgeon,
+    pull_wrench,
+    swage_out_angle,
+)
 
 
 class ExpertPolicy(ScriptedSurgeon):
@@ -40,9 +46,15 @@ class FeedbackExpert(ExpertPolicy):
     observe. Here, while turning, the command is the needle lying on the planned circle with its tip ``lead`` rad
     ahead of the tip's measured angle about the circle's centre (the angle unwrapped next to the previous one),
     so the label is a function of the state: a needle off the circle is pulled back onto it, a needle behind
-    is driven on from where it is. Pulling and the transit between stitches are state-driven in the expert
-    already and are unchanged. The turn ends, as the expert's, once the swage would be
+    is driven on from where it is. The turn ends, as the expert's, once the swage would be
     :data:`~suture_gym.tasks.surgeon.CLEARANCE` rad past the exit (measured within ``lead``).
+
+    In ``wrench`` mode the pull is the start phases' (:func:`~suture_gym.tasks.surgeon.pull_wrench`): a constant
+    force of :data:`~suture_gym.tasks.surgeon.PULL_FORCE_PER_MAX_FORCE` times ``max_force`` along the expert's
+    pull direction, damped by :data:`~suture_gym.tasks.surgeon.PULL_DAMPING_PER_MAX_FORCE` times it, the
+    orientation held at the turn's last pose. The expert's own pull servos the grip to a point ``pull_speed *
+    dt`` ahead, a velocity loop so stiff that its labels flip between -1 and 1 with the grip's speed; a learner
+    fitted to them pulled with their mean, about nothing. The transit between stitches is the expert's.
 
     Args:
         env, turn_rate, pull_speed: as :class:`ExpertPolicy` (``turn_rate`` is unused while turning, but the
@@ -82,7 +94,15 @@ class FeedbackExpert(ExpertPolicy):
                 self.angle = turn_end  # the expert's call moves on to the pull
             else:  # the expert's call adds one clock step to the angle it is given
                 self.angle = self.measured + self.lead - self.turn_rate * sim.control_dt
-        return super().__call__(obs)
+        action = super().__call__(obs)
+        if self.phase != "pull" or self.env.config.action.mode != "wrench":
+            return action
+        arc = sim.arcs[self.stitch]
+        _, hold = sim.arc_grip_target(arc, swage_out_angle(arc, sim.model.needle.shape.arc_angle))
+        max_force = self.env.config.action.max_force
+        force = PULL_FORCE_PER_MAX_FORCE * max_force * self._pull_direction(self._planned_pull(self.stitch))
+        return self.env.action_for_wrench(pull_wrench(sim.model.needle, sim.state.needle, hold, force,
+                                                      PULL_DAMPING_PER_MAX_FORCE * max_force, sim.coupling_spring))
 
 
 def expert_episodes(env: gym.Env, episodes: int, seed: int = 0,

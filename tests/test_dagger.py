@@ -127,3 +127,15 @@ def test_a_learner_that_holds_still_ends_its_rollout(tmp_path):
     expert, learner = json.loads((result.run_dir / "summary.json").read_text())["iterations"]
     assert expert["stalled_episodes"] == 0 and expert["success_rate"] == 1.0
     assert learner["stalled_episodes"] == 2 and learner["steps"] == 2 * 20
+
+
+def test_action_for_wrench_scales_by_the_action_limits(env):
+    cfg = env.unwrapped.config.action
+    wrench = np.array([cfg.max_force, -0.5 * cfg.max_force, 3.0 * cfg.max_force, 0.25 * cfg.max_torque, 0.0,
+                       -2.0 * cfg.max_torque])
+    np.testing.assert_allclose(env.unwrapped.action_for_wrench(wrench), [1.0, -0.5, 1.0, 0.25, 0.0, -1.0])
+    with pytest.raises(ValueError, match="shape"):
+        env.unwrapped.action_for_wrench(np.zeros(3))
+    pose = gym.make("SutureGym/NeedleInsert-v2", config={"action": {"mode": "pose_delta"}})
+    with pytest.raises(ValueError, match="pose_delta"):
+        pose.unwrapped.action_for_wrench(np.zeros(6))

@@ -308,14 +308,22 @@ class SutureEnv(gym.Env):
         target_pos = np.asarray(target_pos, dtype=np.float64)
         target_quat = np.asarray(target_quat, dtype=np.float64)
         if self.config.action.mode == "wrench":
-            wrench = self.sim.coupling_spring.wrench(self.sim.model.needle, self.sim.state.needle, target_pos,
-                                                     target_quat)
-            action = wrench / self._wrench_scale
-        else:
-            cfg = self.config.action
-            turn = quat_rotation_vector(quat_mul(target_quat, quat_conj(self._target_quat)))
-            action = np.concatenate([(target_pos - self._target_pos) / cfg.max_translation, turn / cfg.max_rotation])
+            return self.action_for_wrench(self.sim.coupling_spring.wrench(
+                self.sim.model.needle, self.sim.state.needle, target_pos, target_quat))
+        cfg = self.config.action
+        turn = quat_rotation_vector(quat_mul(target_quat, quat_conj(self._target_quat)))
+        action = np.concatenate([(target_pos - self._target_pos) / cfg.max_translation, turn / cfg.max_rotation])
         return np.clip(action, -1.0, 1.0).astype(np.float32)
+
+    def action_for_wrench(self, wrench: np.ndarray) -> np.ndarray:
+        """``(6,) float32`` action in [-1, 1] of ``wrench`` mode that applies the grip wrench ``wrench`` ``(6,)``
+        [N, N m] (force, then torque about the grip point), clipped to the action limits."""
+        if self.config.action.mode != "wrench":
+            raise ValueError(f"action_for_wrench needs action.mode 'wrench', the env has {self.config.action.mode!r}")
+        wrench = np.asarray(wrench, dtype=np.float64)
+        if wrench.shape != (6,):
+            raise ValueError(f"wrench must have shape (6,), got {wrench.shape}")
+        return np.clip(wrench / self._wrench_scale, -1.0, 1.0).astype(np.float32)
 
     def scripted_action(self, tip_angle: float, stitch: int | None = None) -> np.ndarray:
         """:meth:`action_toward` the needle lying on stitch ``stitch``'s planned circle (default: the current
