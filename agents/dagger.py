@@ -44,11 +44,11 @@ import numpy as np
 #: Keys of a config's ``dagger`` mapping and their defaults: iterations (>= 1), episodes per iteration (>= 1),
 #: the oracle's share of the executed actions in iteration 0 (``beta``, in [0, 1]) and its decay per iteration
 #: (``beta_decay``, in [0, 1]), the refit's passes over all data (``epochs``), minibatch size and Adam step, and
-#: the oracle's ``lead`` (rad, :class:`agents.expert.FeedbackExpert`) and the steps after which a still needle ends
+#: the oracle's ``lead`` (rad) and ``gain`` (:class:`agents.expert.FeedbackExpert`), and the steps after which a still needle ends
 #: a rollout (``stall_steps``, see :data:`STALL_DISTANCE`).
 DAGGER_KEYS: dict[str, Any] = {"iterations": 8, "episodes_per_iteration": 10, "beta": 1.0, "beta_decay": 0.0,
                                "epochs": 10, "batch_size": 256, "learning_rate": 1e-3, "lead": 0.02,
-                               "stall_steps": 100}
+                               "gain": 1.0, "stall_steps": 100}
 #: A rollout whose needle tip moved less than this (m) over the last ``stall_steps`` steps ends there (the
 #: scripted surgeon never holds still, so a still needle is a learner stuck, e.g. pushing too weakly against the
 #: tissue's friction; its labels past that point would repeat the same state).
@@ -76,6 +76,8 @@ def dagger_settings(value: Any) -> dict[str, Any]:
     for key in ("beta", "beta_decay"):
         if isinstance(out[key], bool) or not isinstance(out[key], (int, float)) or not 0.0 <= out[key] <= 1.0:
             raise ValueError(f"dagger.{key} must lie in [0, 1], got {out[key]!r}")
+    if isinstance(out["gain"], bool) or not isinstance(out["gain"], (int, float)) or not 0.0 < out["gain"] <= 1.0:
+        raise ValueError(f"dagger.gain must lie in (0, 1], got {out['gain']!r}")
     for key in ("learning_rate", "lead"):
         if isinstance(out[key], bool) or not isinstance(out[key], (int, float)) or not (
                 math.isfinite(out[key]) and out[key] > 0.0):
@@ -125,7 +127,7 @@ def train_dagger(env_id: str, seed: int, run_dir: Path, total: int, script: dict
         vec_env = VecNormalize(vec_env, **norm_kwargs)
         vec_env.training = False  # its statistics are updated with each iteration's data below, not by stepping
     model = PPO(script["policy"], vec_env, seed=seed, device="cpu", verbose=0, **kwargs)
-    oracle = FeedbackExpert(env, lead=settings["lead"])
+    oracle = FeedbackExpert(env, lead=settings["lead"], gain=settings["gain"])
     rng = np.random.default_rng(seed)
 
     columns: dict[str, list] = {"observations": [], "actions": [], "rewards": []}

@@ -35,6 +35,7 @@ def env():
         ({"lead": 0.0}, "dagger.lead"),
         ({"learning_rate": float("nan")}, "dagger.learning_rate"),
         ({"stall_steps": 0}, "dagger.stall_steps"),
+        ({"gain": 1.5}, "dagger.gain"),
     ],
 )
 def test_dagger_settings_name_bad_values(change, message):
@@ -73,9 +74,25 @@ def test_feedback_expert_inserts_the_needle(env):
     assert info["is_success"] and terminated
 
 
-def test_feedback_expert_names_a_bad_lead(env):
+def test_feedback_expert_names_a_bad_lead_or_gain(env):
     with pytest.raises(ValueError, match="lead"):
         FeedbackExpert(env, lead=-0.01)
+    with pytest.raises(ValueError, match="gain"):
+        FeedbackExpert(env, gain=0.0)
+
+
+def test_a_softer_feedback_expert_commands_a_proportionally_softer_wrench(env):
+    """The turn's label is the env's coupling wrench toward the commanded pose, scaled by ``gain``."""
+    obs, _ = env.reset(seed=0)
+    for _ in range(40):
+        obs, *_ = env.step(FeedbackExpert(env)(obs))
+    soft = FeedbackExpert(env, gain=0.25)
+    label = soft(obs)
+    sim = env.unwrapped.sim
+    wrench = sim.coupling_spring.wrench(sim.model.needle, sim.state.needle, *sim.arc_grip_target(sim.arcs[0],
+                                                                                                 soft.angle))
+    np.testing.assert_allclose(label, env.unwrapped.action_for_wrench(0.25 * wrench), atol=1e-6)
+    assert 0.0 < np.abs(label).max() < 1.0
 
 
 def test_dagger_run_writes_an_evaluable_model(tmp_path):
