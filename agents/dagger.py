@@ -43,9 +43,9 @@ import numpy as np
 
 #: Keys of a config's ``dagger`` mapping and their defaults: iterations (>= 1), episodes per iteration (>= 1),
 #: the oracle's share of the executed actions in iteration 0 (``beta``, in [0, 1]) and its decay per iteration
-#: (``beta_decay``, in [0, 1]), the refit's passes over all data (``epochs``), minibatch size and Adam step, and
-#: the oracle's ``lead`` (rad) and ``gain`` (:class:`agents.expert.FeedbackExpert`), and the steps after which a still needle ends
-#: a rollout (``stall_steps``, see :data:`STALL_DISTANCE`).
+#: (``beta_decay``, in [0, 1]), the refit's passes over all data (``epochs``), minibatch size and Adam step, the
+#: oracle's ``lead`` (rad) and ``gain`` (:class:`agents.expert.FeedbackExpert`), and the steps after which a still
+#: needle ends a rollout (``stall_steps``, see :data:`STALL_DISTANCE`).
 DAGGER_KEYS: dict[str, Any] = {"iterations": 8, "episodes_per_iteration": 10, "beta": 1.0, "beta_decay": 0.0,
                                "epochs": 10, "batch_size": 256, "learning_rate": 1e-3, "lead": 0.02,
                                "gain": 1.0, "stall_steps": 100}
