@@ -23,7 +23,7 @@ The learner is an SB3 :class:`~stable_baselines3.PPO` model (``MlpPolicy``), sav
 :func:`agents.training.train` (``final_model.zip``, ``final_vecnormalize.pkl``, ``checkpoints/``,
 ``eval/evaluations.npz``, ``learning_curve.png``, ``summary.json``), so ``scripts/evaluate.py`` and PPO's
 ``--resume`` read it. ``best_model.zip`` is the checkpoint whose learner-alone iteration succeeded most often
-(the later one on ties).
+(the later one on ties), with its own statistics in ``best_vecnormalize.pkl``.
 
 Why by hand: the ``imitation`` library's DAgger pins its own SB3 and Gymnasium versions (see
 :mod:`agents.imitation`), and the loop is short.
@@ -208,8 +208,11 @@ def train_dagger(env_id: str, seed: int, run_dir: Path, total: int, script: dict
     env.close()
     best = _best_iteration(history)
     if best is not None:
-        shutil.copyfile(run_dir / "checkpoints" / f"model_{history[best - 1]['checkpoint_steps']}_steps.zip",
-                        run_dir / "best_model.zip")
+        steps_best = history[best - 1]["checkpoint_steps"]
+        shutil.copyfile(run_dir / "checkpoints" / f"model_{steps_best}_steps.zip", run_dir / "best_model.zip")
+        if normalize:  # the statistics change every iteration: the best model's are its checkpoint's
+            shutil.copyfile(run_dir / "checkpoints" / f"model_vecnormalize_{steps_best}_steps.pkl",
+                            run_dir / "best_vecnormalize.pkl")
     last_return = last_success = None
     if curve["timesteps"]:
         (run_dir / "eval").mkdir(exist_ok=True)

@@ -85,7 +85,8 @@ def model_vecnormalize(policy: str, vecnormalize: str | Path | None = None) -> P
 
     ``vecnormalize`` given: that file (FileNotFoundError naming it if it does not exist). Otherwise the
     statistics saved with the model: a checkpoint's ``model_vecnormalize_<N>_steps.pkl`` beside
-    ``model_<N>_steps.zip``, else ``final_vecnormalize.pkl`` beside the model. When neither exists the model is
+    ``model_<N>_steps.zip``, a ``best_model.zip``'s ``best_vecnormalize.pkl`` (DAgger writes one, its statistics
+    being the best checkpoint's), else ``final_vecnormalize.pkl`` beside the model. When neither exists the model is
     evaluated on raw observations, with a ``UserWarning`` unless the model's run config says it was trained
     without normalisation (a model trained with it acts on meaningless inputs without its statistics).
     ``random`` and ``expert`` take none (None).
@@ -103,6 +104,9 @@ def model_vecnormalize(policy: str, vecnormalize: str | Path | None = None) -> P
     if not model.exists():
         return None  # make_policy names the missing model
     found = _sibling(model, "vecnormalize", ".pkl")
+    best = model.parent / "best_vecnormalize.pkl"
+    if found is None and model.name == "best_model.zip" and best.is_file():
+        found = best
     final = model.parent / "final_vecnormalize.pkl"
     if found is None and final.is_file():
         found = final

@@ -119,6 +119,11 @@ def test_dagger_run_writes_an_evaluable_model(tmp_path):
     assert list(curve["timesteps"]) == [steps[0], steps[0] + steps[1]]
     report = evaluate("SutureGym/NeedleInsert-v2", str(run / "final_model.zip"), episodes=1, seed=7)
     assert report["vecnormalize"].endswith("final_vecnormalize.pkl") and report["env_kwargs"]["config"]
+    best = summary["iterations"][summary["best_iteration"] - 1]["checkpoint_steps"]
+    checkpoint = run / "checkpoints" / f"model_vecnormalize_{best}_steps.pkl"
+    assert (run / "best_vecnormalize.pkl").read_bytes() == checkpoint.read_bytes()
+    assert evaluate("SutureGym/NeedleInsert-v2", str(run / "best_model.zip"), episodes=1,
+                    seed=7)["vecnormalize"].endswith("best_vecnormalize.pkl")
     with pytest.raises(ValueError, match="cannot be resumed"):
         train("dagger", "SutureGym/NeedleInsert-v2", out_dir=tmp_path, hyperparams=hyperparams,
               resume=run / "final_model.zip")
