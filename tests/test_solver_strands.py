@@ -276,3 +276,29 @@ def test_a_thread_draped_into_a_wound_rests_on_the_base_not_below_the_bars():
     assert x[-1, 2] < radius + 1e-6  # the tail lies on it, in the gap
     assert width < x[-1, 1] < width + gap
     assert not state.diverged
+
+
+def test_a_thread_hitting_tissue_without_a_static_obstacle_is_pushed_out_once():
+    """A suture node's tissue contact row in the rod's solve takes its gap at every iteration's positions.
+
+    With no static obstacle in the scene (the abdominal wall is held at its edges, not on a base) nothing reset
+    the rod's contact gaps between iterations, so a node that sank into the tissue kept its first gap, the
+    solve pushed it out by that much at every iteration, and the abdominal wall's WoundClosure thread left the
+    tissue at 18 m/s at its first contact."""
+    length, width, height = 0.024, 0.006, 0.006
+    tissue = two_bar_wound(bar_size=(length, width, height), cells=(6, 2, 2), gap=0.004, base=False)
+    needle = NeedleModel.from_shape(gravity_compensation=True)
+    pos, quat = needle_circle_pose(needle, np.zeros(3), WOUND_ARC_AXIS, WOUND_ARC_U, 0.5 * math.pi)  # above the swage
+    swage = np.array([0.004, 0.5 * width, height + 5.0e-4])  # over bar A, 0.5 mm above its top
+    pos = pos + swage - (pos + quat_to_matrix(quat) @ needle.swage_pos_body)
+    scene = add_strands(tissue, (pos, quat), suture_params=SutureParams(length=0.01, node_count=11),
+                        suture_direction=(1.0, 0.0, 0.0))  # along the bar, clear of its pinned ends
+    model, state = scene.model, scene.state
+    assert model.obstacles is None
+    speed = 1.5  # m/s down: one substep sinks the nodes 1 mm into the bar
+    state.suture.node_vel[1:] = [0.0, 0.0, -speed]
+    Solver().step(model, state, Control(), DT)
+    x, v = state.suture.node_pos[1:], state.suture.node_vel[1:]
+    assert not state.diverged
+    assert x[:, 2].max() < height + 5.0e-4  # out to the surface, not launched above where it started
+    assert np.linalg.norm(v, axis=1).max() < speed  # a contact takes speed away, it gives none
