@@ -302,3 +302,30 @@ def test_a_thread_hitting_tissue_without_a_static_obstacle_is_pushed_out_once():
     assert not state.diverged
     assert x[:, 2].max() < height + 5.0e-4  # out to the surface, not launched above where it started
     assert np.linalg.norm(v, axis=1).max() < speed  # a contact takes speed away, it gives none
+
+
+def test_a_thread_node_inside_the_tissue_is_not_pushed_out_through_a_clamped_face():
+    """A face glued to a support (the clamped end of a bar, an anatomy patch's held edges) has the support behind
+    it: a thread node that sank into the tissue next to it gets no row with it, which would hold the thread
+    against its pull (the abdominal wall's WoundClosure thread, draped over the patch's held edge, took 100-280 N
+    there and tore the tissue). In front of the face, or inside next to a free face, the node keeps its row."""
+    from suture_gym.sim.coupling import ROW_NONE, ROW_TRIANGLE, CouplingWork, coupling_detect
+
+    tissue = two_bar_wound(bar_size=(0.024, 0.006, 0.006), cells=(6, 2, 2), gap=0.004, base=False)
+    needle = NeedleModel.from_shape(gravity_compensation=True)
+    pos, quat = needle_circle_pose(needle, np.array([0.012, 0.003, 0.03]), WOUND_ARC_AXIS, WOUND_ARC_U, 0.0)
+    scene = add_strands(tissue, (pos, quat), suture_params=SutureParams(length=0.01, node_count=11))
+    model, state = scene.model, scene.state
+    coupling = model.coupling
+    suture_q = state.suture.node_pos.copy()
+    suture_q[1] = [0.0004, 0.003, 0.003]  # inside bar A, 0.4 mm from its clamped end face x = 0
+    suture_q[2] = [0.012, 0.003, 0.0056]  # inside, 0.4 mm below its free top
+    suture_q[3] = [-0.0005, 0.003, 0.003]  # outside, 0.5 mm in front of the clamped face
+    needle_q = pos + needle.node_pos_body @ quat_to_matrix(quat).T
+    strand_q = np.concatenate([needle_q, suture_q[1:]])
+    work = CouplingWork(coupling)
+    coupling_detect(coupling, state.coupling, work, model.tissue, state.tissue.particle_q, strand_q)
+    rows = coupling.needle_node_count + np.arange(3)  # suture nodes 1, 2, 3
+    assert state.coupling.strand_sdist[rows[0]] < 0.0 and coupling.tri_rigid[state.coupling.strand_tri[rows[0]]]
+    assert work.row_kind[rows].tolist() == [ROW_NONE, ROW_TRIANGLE, ROW_TRIANGLE]
+    assert not coupling.tri_rigid[work.row_tri[rows[1]]] and coupling.tri_rigid[work.row_tri[rows[2]]]
