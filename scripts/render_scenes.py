@@ -31,7 +31,7 @@ from suture_gym.sim.anatomy import hand_surface  # noqa: E402
 
 CONFIGS = ROOT / "configs" / "envs"
 SCENES = {
-    "abdominal_wall": ("SutureGym/WoundClosure-v2", ROOT / "docs" / "examples" / "abdominal_wall_wound_closure.yaml"),
+    "abdominal_wall": ("SutureGym/WoundClosure-v2", CONFIGS / "abdominal_wall_wound_closure.yaml"),
     "hand": ("SutureGym/SutureThrow-v2", CONFIGS / "hand_suture_throw.yaml"),
     "mesh": ("SutureGym/SutureThrow-v2", ROOT / "docs" / "examples" / "mesh_suture_throw.yaml"),
 }

@@ -55,7 +55,7 @@ def test_layers_apply_to_any_scene_kind(block_file):
 
 
 def test_abdominal_wall_config_counts_its_grid():
-    config = load_config("wound_closure", "docs/examples/abdominal_wall_wound_closure.yaml")
+    config = load_config("wound_closure", "configs/envs/abdominal_wall_wound_closure.yaml")
     assert config.scene.tets == 5 * 14 * 10 * 6
 
 

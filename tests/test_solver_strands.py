@@ -276,3 +276,56 @@ def test_a_thread_draped_into_a_wound_rests_on_the_base_not_below_the_bars():
     assert x[-1, 2] < radius + 1e-6  # the tail lies on it, in the gap
     assert width < x[-1, 1] < width + gap
     assert not state.diverged
+
+
+def test_a_thread_hitting_tissue_without_a_static_obstacle_is_pushed_out_once():
+    """A suture node's tissue contact row in the rod's solve takes its gap at every iteration's positions.
+
+    With no static obstacle in the scene (the abdominal wall is held at its edges, not on a base) nothing reset
+    the rod's contact gaps between iterations, so a node that sank into the tissue kept its first gap, the
+    solve pushed it out by that much at every iteration, and the abdominal wall's WoundClosure thread left the
+    tissue at 18 m/s at its first contact."""
+    length, width, height = 0.024, 0.006, 0.006
+    tissue = two_bar_wound(bar_size=(length, width, height), cells=(6, 2, 2), gap=0.004, base=False)
+    needle = NeedleModel.from_shape(gravity_compensation=True)
+    pos, quat = needle_circle_pose(needle, np.zeros(3), WOUND_ARC_AXIS, WOUND_ARC_U, 0.5 * math.pi)  # above the swage
+    swage = np.array([0.004, 0.5 * width, height + 5.0e-4])  # over bar A, 0.5 mm above its top
+    pos = pos + swage - (pos + quat_to_matrix(quat) @ needle.swage_pos_body)
+    scene = add_strands(tissue, (pos, quat), suture_params=SutureParams(length=0.01, node_count=11),
+                        suture_direction=(1.0, 0.0, 0.0))  # along the bar, clear of its pinned ends
+    model, state = scene.model, scene.state
+    assert model.obstacles is None
+    speed = 1.5  # m/s down: one substep sinks the nodes 1 mm into the bar
+    state.suture.node_vel[1:] = [0.0, 0.0, -speed]
+    Solver().step(model, state, Control(), DT)
+    x, v = state.suture.node_pos[1:], state.suture.node_vel[1:]
+    assert not state.diverged
+    assert x[:, 2].max() < height + 5.0e-4  # out to the surface, not launched above where it started
+    assert np.linalg.norm(v, axis=1).max() < speed  # a contact takes speed away, it gives none
+
+
+def test_a_thread_node_inside_the_tissue_is_not_pushed_out_through_a_clamped_face():
+    """A face glued to a support (the clamped end of a bar, an anatomy patch's held edges) has the support behind
+    it: a thread node that sank into the tissue next to it gets no row with it, which would hold the thread
+    against its pull (the abdominal wall's WoundClosure thread, draped over the patch's held edge, took 100-280 N
+    there and tore the tissue). In front of the face, or inside next to a free face, the node keeps its row."""
+    from suture_gym.sim.coupling import ROW_NONE, ROW_TRIANGLE, CouplingWork, coupling_detect
+
+    tissue = two_bar_wound(bar_size=(0.024, 0.006, 0.006), cells=(6, 2, 2), gap=0.004, base=False)
+    needle = NeedleModel.from_shape(gravity_compensation=True)
+    pos, quat = needle_circle_pose(needle, np.array([0.012, 0.003, 0.03]), WOUND_ARC_AXIS, WOUND_ARC_U, 0.0)
+    scene = add_strands(tissue, (pos, quat), suture_params=SutureParams(length=0.01, node_count=11))
+    model, state = scene.model, scene.state
+    coupling = model.coupling
+    suture_q = state.suture.node_pos.copy()
+    suture_q[1] = [0.0004, 0.003, 0.003]  # inside bar A, 0.4 mm from its clamped end face x = 0
+    suture_q[2] = [0.012, 0.003, 0.0056]  # inside, 0.4 mm below its free top
+    suture_q[3] = [-0.0005, 0.003, 0.003]  # outside, 0.5 mm in front of the clamped face
+    needle_q = pos + needle.node_pos_body @ quat_to_matrix(quat).T
+    strand_q = np.concatenate([needle_q, suture_q[1:]])
+    work = CouplingWork(coupling)
+    coupling_detect(coupling, state.coupling, work, model.tissue, state.tissue.particle_q, strand_q)
+    rows = coupling.needle_node_count + np.arange(3)  # suture nodes 1, 2, 3
+    assert state.coupling.strand_sdist[rows[0]] < 0.0 and coupling.tri_rigid[state.coupling.strand_tri[rows[0]]]
+    assert work.row_kind[rows].tolist() == [ROW_NONE, ROW_TRIANGLE, ROW_TRIANGLE]
+    assert not coupling.tri_rigid[work.row_tri[rows[1]]] and coupling.tri_rigid[work.row_tri[rows[2]]]

@@ -595,10 +595,11 @@ class Solver:
         two-way with the tissue), warm-started from ``state.suture_tension``, up to ``rod_iterations``
         iterations until its residual is below ``rod_tolerance``.
 
-        Before each iteration the static obstacles (``model.obstacles``) give every node its contact row
-        (:func:`~suture_gym.sim.rod.rod_detect_contacts`). With coupling, nodes held on a path or passing an
-        access point use their embedded inverse masses (:func:`~suture_gym.sim.coupling.embedded_inv_mass`),
-        and the suture's node-triangle rows enter the solve as one-sided contact rows, in place of an obstacle's
+        Before each iteration every node's contact row is reset to the static obstacles' (``model.obstacles``;
+        none: no row) at the current positions (:func:`~suture_gym.sim.rod.rod_detect_contacts`). With coupling,
+        nodes held on a path or passing an access point use their embedded inverse masses
+        (:func:`~suture_gym.sim.coupling.embedded_inv_mass`), and the suture's node-triangle rows enter the solve
+        as one-sided contact rows, in place of an obstacle's where theirs is the smaller gap
         (:func:`~suture_gym.sim.coupling.suture_contact_rows`); after each iteration the tissue takes their
         reaction (:func:`~suture_gym.sim.coupling.apply_contact_reaction`). The warm start is loaded as the
         stretch multipliers that the rod's ``begin`` reads it from. The number of solves goes to
@@ -612,7 +613,6 @@ class Solver:
         work.lam[:] = 0.0
         work.lam[1:, 0] = state.suture_tension
         work.begin(rod_state)
-        work.contact_gap[:] = np.inf
         work.contact_cap[:] = 0.0
         # thread friction rows only when the thread has friction (the default has none)
         friction_rows = None
@@ -623,8 +623,9 @@ class Solver:
             )  # fmt: skip
         state.work.rod_solves = 0
         for _ in range(self.rod_iterations):
-            if model.obstacles is not None:
-                rod_detect_contacts(suture, rod_state, work, model.obstacles)
+            # every iteration, obstacles or not: the gaps are reset to this iteration's (the tissue rows compare
+            # against them, and a gap kept from the last iteration would push a node out again)
+            rod_detect_contacts(suture, rod_state, work, model.obstacles)
             if coupling is not None:
                 suture_contact_rows(
                     coupling.needle_node_count, coupling.params.resistance_eps, cwork.contact_rows,

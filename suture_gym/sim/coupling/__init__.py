@@ -87,7 +87,9 @@ Projection (called by :class:`~suture_gym.sim.solver.Solver`)
   tissue: :func:`suture_contact_rows` gives each row the triangle's share of its inverse mass, which
   :func:`~suture_gym.sim.rod_solver.rod_iteration_kernel` adds to the row, and :func:`apply_contact_reaction` moves
   the tissue by its share. A node has one contact row: a static obstacle's (the base) takes it where its gap
-  is the smaller one. Triangles on a support plane (``CouplingModel.tri_on_support``) give suture nodes no rows.
+  is the smaller one. Triangles on a support plane (``CouplingModel.tri_on_support``) give suture nodes no rows,
+  nor do rigid triangles to suture nodes inside the tissue (the support is behind them: such a node came in
+  through a free face, and a row out through the rigid one hooks the thread on the support).
 * Node-access rows are Gauss-Seidel on the strand piece centred on the access point (:func:`project_access_rows`).
 * Thread friction in the paths (``suture_axial_friction``, off by default) is a bounded row of the rod's direct
   solve per suture node on a path (:func:`suture_friction_rows`, :func:`apply_friction_reaction`): along its

@@ -143,7 +143,11 @@ def build_node_rows(sigma, strand_q, sdist, strand_tri, row_band, paths, pathnod
     node-path row (:func:`_path_row`); others a node-triangle row with their closest triangle when their signed distance
     is below ``row_band`` (m), unless they carry one of the ``n_access`` node-access rows or are suture nodes
     (from strand index ``suture_skip[0]``) whose closest triangle lies on a support (``suture_skip[1]`` (F,)
-    bool, ``CouplingModel.tri_on_support``: the base is the suture's obstacle there).
+    bool, ``CouplingModel.tri_on_support``: the base is the suture's obstacle there) or, for a node inside the
+    tissue (``sdist < 0``), is rigid (``suture_skip[2]`` (F,) bool, ``CouplingModel.tri_rigid``): a face glued
+    to a support (a clamp, the body holding an anatomy patch at its edges) has the support behind it, so a
+    thread node that sank into the tissue beside it came in through a free face and cannot leave through that
+    one; its row there would hold the thread against the pull like a hook on the support.
 
     Args:
         sigma: ``(M,)`` m. strand_q: ``(M, 3)`` m. sdist: ``(M,)`` m. strand_tri: ``(M,)`` closest triangles.
@@ -178,7 +182,7 @@ def build_node_rows(sigma, strand_q, sdist, strand_tri, row_band, paths, pathnod
             continue
         if strand_tri[i] < 0 or not (sdist[i] < row_band) or _in_access_piece(i, n_access, access[0], access[1]):
             continue
-        if i >= suture_skip[0] and suture_skip[1][strand_tri[i]]:
+        if i >= suture_skip[0] and (suture_skip[1][strand_tri[i]] or (sdist[i] < 0.0 and suture_skip[2][strand_tri[i]])):
             continue
         row_kind[i] = ROW_TRIANGLE
         row_tri[i] = strand_tri[i]
@@ -332,10 +336,11 @@ def coupling_detect(
     band = model.params.resistance_eps + model.params.contact_margin
     work.access_count = build_access_rows(model.strand_sigma, paths, work.access_rows)
     pathnodes = (state.pathnode_tet, state.pathnode_bary, work.pathnode_q, work.pathnode_tangent)
+    suture_skip = (model.needle_node_count, model.tri_on_support, model.tri_rigid)
     build_node_rows(
         model.strand_sigma, strand_q, state.strand_sdist, state.strand_tri, band, paths, pathnodes,
-        tissue.tet_indices, work.access_rows, work.access_count, (model.needle_node_count, model.tri_on_support),
-        state.strand_status, state.strand_path, work.node_rows,
+        tissue.tet_indices, work.access_rows, work.access_count, suture_skip, state.strand_status, state.strand_path,
+        work.node_rows,
     )  # fmt: skip
     _wall_and_anchor_rows(model, state, work)
     if strand_q_start is not None and model.tri_rigid.any():
