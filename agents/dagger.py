@@ -228,12 +228,10 @@ def train_dagger(env_id: str, seed: int, run_dir: Path, total: int, script: dict
 
 
 def _act(model, vec_env, obs: np.ndarray) -> np.ndarray:
-    """The learner's deterministic action on the raw observation ``obs``."""
-    from stable_baselines3.common.vec_env import VecNormalize
-
-    if isinstance(vec_env, VecNormalize):
-        obs = vec_env.normalize_obs(obs)
-    action, _ = model.predict(obs, deterministic=True)
+    """The learner's deterministic action on the raw observation ``obs`` (normalised when ``vec_env`` is a
+    ``VecNormalize``, whose ``normalize_obs`` a plain VecEnv lacks)."""
+    normalize = getattr(vec_env, "normalize_obs", None)
+    action, _ = model.predict(normalize(obs) if normalize is not None else obs, deterministic=True)
     return action
 
 
