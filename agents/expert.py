@@ -26,11 +26,15 @@ import numpy as np
 from agents.datasets import RecordedEpisode
 from suture_gym.tasks.surgeon import (
     PULL_DAMPING_PER_MAX_FORCE,
-    PULL_FORCE_PER_MAX_FORCE,
+    TRANSIT_SPEED,
     ScriptedSurgeon,
     pull_wrench,
     swage_out_angle,
+    thread_pull_wrench,
 )
+
+#: Distance (m) from a transit waypoint inside which :class:`FeedbackExpert`'s transit slows down in proportion.
+TRANSIT_SLOWDOWN = 0.005
 
 
 class ExpertPolicy(ScriptedSurgeon):
@@ -50,12 +54,15 @@ class FeedbackExpert(ExpertPolicy):
     is driven on from where it is. The turn ends, as the expert's, once the swage would be
     :data:`~suture_gym.tasks.surgeon.CLEARANCE` rad past the exit (measured within ``lead``).
 
-    In ``wrench`` mode the pull is the start phases' (:func:`~suture_gym.tasks.surgeon.pull_wrench`): a constant
-    force of :data:`~suture_gym.tasks.surgeon.PULL_FORCE_PER_MAX_FORCE` times ``max_force`` along the expert's
-    pull direction, damped by :data:`~suture_gym.tasks.surgeon.PULL_DAMPING_PER_MAX_FORCE` times it, the
-    orientation held at the turn's last pose. The expert's own pull servos the grip to a point ``pull_speed *
-    dt`` ahead, a velocity loop so stiff that its labels flip between -1 and 1 with the grip's speed; a learner
-    fitted to them pulled with their mean, about nothing. The transit between stitches is the expert's.
+    In ``wrench`` mode the pull is the start phases' (:func:`~suture_gym.tasks.surgeon.thread_pull_wrench`): a
+    constant force along the expert's pull direction, damped, the orientation held at the turn's last pose by the
+    softened coupling (``gain``). The expert's own pull servos the grip to a point ``pull_speed * dt`` ahead, a
+    velocity loop so stiff that its labels flip between -1 and 1 with the grip's speed; a learner fitted to them
+    pulled with their mean, about nothing (the full coupling's orientation hold flips the torque labels likewise).
+    The transit between stitches (``wrench`` mode) is soft for the same reason: the expert's waypoints,
+    but a damped force toward a grip velocity of :data:`~suture_gym.tasks.surgeon.TRANSIT_SPEED` aimed at the
+    current waypoint (in proportion to the distance within :data:`TRANSIT_SLOWDOWN` of it), with the pull's
+    damping, the orientation pulled toward the turn's first pose by the softened coupling (``gain``).
 
     Args:
         env, turn_rate, pull_speed: as :class:`ExpertPolicy` (``turn_rate`` is unused while turning, but the
@@ -100,6 +107,11 @@ class FeedbackExpert(ExpertPolicy):
             self._start_stitch(stitch)
             self.measured = self.angle
         wrench_mode = env.config.action.mode == "wrench"
+        if self.phase == "transit" and wrench_mode:
+            waypoint = self._next_waypoint()
+            if waypoint is not None:
+                return self._soft_transit(waypoint)
+            self.phase = "turn"
         if self.phase == "turn":
             arc = sim.arcs[self.stitch]
             tip = sim.tip_position() - arc.center
@@ -118,10 +130,19 @@ class FeedbackExpert(ExpertPolicy):
             return super().__call__(obs)
         arc = sim.arcs[self.stitch]
         _, hold = sim.arc_grip_target(arc, swage_out_angle(arc, sim.model.needle.shape.arc_angle))
-        max_force = env.config.action.max_force
-        force = PULL_FORCE_PER_MAX_FORCE * max_force * self._pull_direction(self._planned_pull(self.stitch))
-        return env.action_for_wrench(pull_wrench(sim.model.needle, sim.state.needle, hold, force,
-                                                 PULL_DAMPING_PER_MAX_FORCE * max_force, sim.coupling_spring))
+        return env.action_for_wrench(thread_pull_wrench(sim, hold, self._pull_direction(self._planned_pull(
+            self.stitch)), self.spring))
+
+    def _soft_transit(self, waypoint: np.ndarray) -> np.ndarray:
+        """``wrench``-mode action of the soft transit toward ``waypoint`` (3,) m (see the class docstring)."""
+        sim = self.env.sim
+        grip, _ = sim.grip_pose()
+        _, quat = sim.arc_grip_target(sim.arcs[self.stitch], self.angle)
+        offset = waypoint - grip
+        velocity = TRANSIT_SPEED * offset / max(float(np.linalg.norm(offset)), TRANSIT_SLOWDOWN)
+        damping = PULL_DAMPING_PER_MAX_FORCE * self.env.config.action.max_force
+        return self.env.action_for_wrench(pull_wrench(sim.model.needle, sim.state.needle, quat, damping * velocity,
+                                                      damping, self.spring))
 
 
 def expert_episodes(env: gym.Env, episodes: int, seed: int = 0,

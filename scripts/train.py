@@ -4,6 +4,7 @@ Usage::
 
     python scripts/train.py --algo ppo --env SutureGym/NeedleInsert-v2 --seed 0
     python scripts/train.py --algo sac --env SutureGym/NeedleInsert-v2 --n-timesteps 20000
+    python scripts/train.py --algo ppo --env SutureGym/NeedleInsert-v2 --from-scratch --n-timesteps 18700
     python scripts/train.py --algo ppo --env SutureGym/NeedleInsert-v2 \
         --resume runs/ppo_NeedleInsert_s0/checkpoints/model_50000_steps.zip
 
@@ -21,7 +22,7 @@ from _common import configure
 
 configure(threads=1)
 
-from agents.hyperparams import algorithms  # noqa: E402
+from agents.hyperparams import algorithms, load_hyperparams  # noqa: E402
 from agents.training import train  # noqa: E402
 
 
@@ -36,11 +37,19 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--eval-episodes", type=int, default=20)
     parser.add_argument("--checkpoint-freq", type=int, default=50_000, help="env steps between checkpoints")
     parser.add_argument("--resume", default=None, help="checkpoint .zip to continue from")
+    parser.add_argument("--from-scratch", action="store_true",
+                        help="leave out the config's behaviour-cloning warm start (PPO, SAC, TQC)")
     parser.add_argument("--no-progress", action="store_true", help="hide the progress bar")
     parser.add_argument("-v", "--verbose", type=int, default=0)
     args = parser.parse_args(argv)
     if args.n_timesteps is not None and args.n_timesteps <= 0:
         parser.error(f"--n-timesteps must be positive, got {args.n_timesteps}")
+    hyperparams = None
+    if args.from_scratch:
+        if args.algo == "dagger":
+            parser.error("--from-scratch applies to PPO, SAC and TQC; DAgger learns from the expert by design")
+        hyperparams = load_hyperparams(args.algo, args.env)
+        hyperparams.pop("behaviour_cloning", None)
 
     result = train(
         args.algo,
@@ -54,6 +63,7 @@ def main(argv: list[str] | None = None) -> int:
         resume=args.resume,
         progress_bar=not args.no_progress,
         verbose=args.verbose,
+        hyperparams=hyperparams,
     )
     print(json.dumps({"run_dir": str(result.run_dir), "model": str(result.model_path),
                       "timesteps": result.timesteps, "wall_s": round(result.wall_s, 1),

@@ -176,3 +176,33 @@ def test_demonstrations_round_trip(tmp_path):
         obs, reward, *_ = env.step(expert(obs))
         replayed += reward
     assert replayed == pytest.approx(float(data["rewards"][: lengths[0]].sum()), rel=0, abs=1e-12)
+
+
+def test_train_script_from_scratch_leaves_out_the_warm_start(tmp_path, monkeypatch, capsys):
+    import importlib
+    from pathlib import Path
+
+    import yaml
+
+    for var in ("NUMBA_NUM_THREADS", "OMP_NUM_THREADS", "OPENBLAS_NUM_THREADS", "MKL_NUM_THREADS"):
+        monkeypatch.setenv(var, "1")  # the script's configure() sets them; restored after the test
+    monkeypatch.syspath_prepend(str(Path(__file__).resolve().parents[1] / "scripts"))
+    script = importlib.import_module("train")
+
+    def shortened(algo, env_id):
+        hyperparams = load_hyperparams(algo, env_id)
+        hyperparams.update(n_envs=2, n_steps=64, batch_size=64, n_epochs=1)
+        return hyperparams
+
+    monkeypatch.setattr(script, "load_hyperparams", shortened)
+    assert "behaviour_cloning" in shortened("ppo", "SutureGym/NeedleInsert-v2")
+    assert script.main(["--algo", "ppo", "--env", "SutureGym/NeedleInsert-v2", "--from-scratch", "--n-timesteps",
+                        "128", "--out", str(tmp_path), "--eval-freq", "0", "--checkpoint-freq", "0",
+                        "--no-progress"]) == 0
+    run_dir = tmp_path / "ppo_NeedleInsert_s0"
+    config = yaml.safe_load((run_dir / "config.yaml").read_text())
+    assert "behaviour_cloning" not in config["hyperparams"] and config["hyperparams"]["n_steps"] == 64
+    assert not (run_dir / "demos.npz").exists()
+    with pytest.raises(SystemExit):
+        script.main(["--algo", "dagger", "--from-scratch"])
+    assert "--from-scratch applies to PPO, SAC and TQC" in capsys.readouterr().err

@@ -1,4 +1,5 @@
-"""DAgger (agents/dagger.py) and its oracle, the feedback expert (agents/expert.py), on NeedleInsert."""
+"""DAgger (agents/dagger.py) and its oracle, the feedback expert (agents/expert.py), on NeedleInsert (and
+WoundClosure for the transit between stitches)."""
 
 import gymnasium as gym
 import numpy as np
@@ -93,6 +94,31 @@ def test_a_softer_feedback_expert_commands_a_proportionally_softer_wrench(env):
                                                                                                  soft.angle))
     np.testing.assert_allclose(label, env.unwrapped.action_for_wrench(0.25 * wrench), atol=1e-6)
     assert 0.0 < np.abs(label).max() < 1.0
+
+
+@pytest.mark.slow
+def test_feedback_expert_carries_the_needle_to_the_next_stitch_with_soft_labels():
+    """WoundClosure: after the first stitch the oracle's transit reaches the second stitch's approach pose (its
+    turn starts), with labels that leave saturation as the grip comes up to the transit speed."""
+    env = gym.make("SutureGym/WoundClosure-v2")
+    obs, _ = env.reset(seed=0)
+    oracle = FeedbackExpert(env, lead=0.06, gain=0.25)
+    sim, task = env.unwrapped.sim, env.unwrapped.task
+    transit = []
+    for _ in range(1500):
+        label = oracle(obs)
+        if oracle.phase == "transit":
+            transit.append(label)
+        elif transit:
+            break
+        obs, _, terminated, truncated, _ = env.step(label)
+        assert not (terminated or truncated)
+    assert task.state.stitch == 1 and oracle.phase == "turn" and len(transit) > 20
+    start, _ = sim.arc_grip_target(sim.arcs[1], oracle.angle)
+    assert np.linalg.norm(sim.grip_pose()[0] - start) < 1.5e-3
+    forces = np.abs(np.asarray(transit)[:, :3]).max(axis=1)
+    assert np.median(forces) < 0.9  # the expert's own transit servo saturates at 1 on most steps
+    env.close()
 
 
 def test_dagger_run_writes_an_evaluable_model(tmp_path):

@@ -83,6 +83,17 @@ def pull_wrench(needle: NeedleModel, state: NeedleState, hold_quat: np.ndarray, 
     return np.concatenate([force - damping * velocity, torque])
 
 
+def thread_pull_wrench(sim, hold_quat: np.ndarray, direction: np.ndarray, spring: VirtualCoupling | None = None,
+                       ) -> np.ndarray:
+    """Grip wrench ``(6,) [N, N m]`` of the thread pull on ``sim``'s needle: :func:`pull_wrench` with
+    :data:`PULL_FORCE_PER_MAX_FORCE` times the action's ``max_force`` along the unit ``direction`` (3,), damped by
+    :data:`PULL_DAMPING_PER_MAX_FORCE` times it (so the grip settles at 15 mm/s when nothing resists), the
+    orientation held at ``hold_quat`` (4,) by ``spring`` (default the simulation's coupling)."""
+    max_force = sim.config.action.max_force
+    return pull_wrench(sim.model.needle, sim.state.needle, hold_quat, PULL_FORCE_PER_MAX_FORCE * max_force * direction,
+                       PULL_DAMPING_PER_MAX_FORCE * max_force, sim.coupling_spring if spring is None else spring)
+
+
 def turn(sim, arc: PlannedArc, start: float, end: float) -> None:
     """Turn ``sim``'s needle target about ``arc``'s centre from tip angle ``start`` to ``end`` (rad) at
     :data:`TURN_RATE`, one :func:`turn_angles` target per env step; stops early if the simulation diverges."""
@@ -97,14 +108,11 @@ def pull_thread(sim, arc: PlannedArc, tip_angle: float, target: float) -> None:
     action's ``max_force`` (damped by :data:`PULL_DAMPING_PER_MAX_FORCE` times it; orientation held at the pose
     of ``tip_angle`` rad) until ``target`` m of thread is through, for at most :data:`PULL_TIME` s."""
     _, hold = circle_grip_target(sim.model.needle, arc.center, arc.axis, arc.u, tip_angle)
-    max_force = sim.config.action.max_force
-    force = PULL_FORCE_PER_MAX_FORCE * max_force * arc.pull_direction
-    damping = PULL_DAMPING_PER_MAX_FORCE * max_force
     for _ in range(int(math.ceil(PULL_TIME / sim.control_dt))):
         if sim.thread_through() >= target or sim.state.diverged:
             return
         for _ in range(sim.substeps):
-            sim.substep(pull_wrench(sim.model.needle, sim.state.needle, hold, force, damping, sim.coupling_spring))
+            sim.substep(thread_pull_wrench(sim, hold, arc.pull_direction))
 
 
 def run_start_phase(sim, phase: str) -> None:
@@ -197,19 +205,24 @@ class ScriptedSurgeon:
         last waypoint is reached)."""
         env = self.env
         sim = env.sim
+        target = self._next_waypoint()
+        if target is None:
+            self.phase = "turn"
+            return env.scripted_action(self.angle, self.stitch)
         grip, _ = sim.grip_pose()
         _, quat = sim.arc_grip_target(arc, self.angle)
-        target = self.waypoints[0]
-        if np.linalg.norm(target - grip) <= WAYPOINT_TOLERANCE:
-            self.waypoints.pop(0)
-            if not self.waypoints:
-                self.phase = "turn"
-                return env.scripted_action(self.angle, self.stitch)
-            target = self.waypoints[0]
         step = TRANSIT_SPEED * sim.control_dt
         offset = target - grip
         distance = max(float(np.linalg.norm(offset)), step)
         return env.action_toward(grip + offset * (step / distance), quat)
+
+    def _next_waypoint(self) -> np.ndarray | None:
+        """The transit's current waypoint (3,) m, the reached ones (within :data:`WAYPOINT_TOLERANCE` of the grip)
+        dropped; None once the last one is reached."""
+        grip, _ = self.env.sim.grip_pose()
+        while self.waypoints and np.linalg.norm(self.waypoints[0] - grip) <= WAYPOINT_TOLERANCE:
+            self.waypoints.pop(0)
+        return self.waypoints[0] if self.waypoints else None
 
     def _planned_pull(self, stitch: int) -> np.ndarray:
         """Unit direction (3,) in which to pull stitch ``stitch``'s thread: the arc's
