@@ -24,17 +24,27 @@ import gymnasium as gym
 import numpy as np
 
 from agents.datasets import RecordedEpisode
+from suture_gym.sim.needle import needle_point_velocity
+from suture_gym.sim.quat import quat_conj, quat_mul, quat_rotation_vector
 from suture_gym.tasks.surgeon import (
+    LIFT,
     PULL_DAMPING_PER_MAX_FORCE,
     TRANSIT_SPEED,
+    WAYPOINT_TOLERANCE,
     ScriptedSurgeon,
-    pull_wrench,
     swage_out_angle,
     thread_pull_wrench,
 )
 
-#: Distance (m) from a transit waypoint inside which :class:`FeedbackExpert`'s transit slows down in proportion.
+#: :class:`FeedbackExpert`'s transit: the distance (m) within which the grip's commanded velocity shrinks in
+#: proportion to what is left (height or horizontal distance), the horizontal distance (m) from the next approach
+#: pose over which it glides down from :data:`~suture_gym.tasks.surgeon.LIFT` above it, and the rate (rad/s) and
+#: the angle (rad) within which that rate shrinks in proportion, at which it turns the needle toward the
+#: approach pose's orientation.
 TRANSIT_SLOWDOWN = 0.005
+TRANSIT_GLIDE = 0.005
+TRANSIT_TURN_RATE = 1.0
+TRANSIT_TURN_SLOWDOWN = 0.1
 
 
 class ExpertPolicy(ScriptedSurgeon):
@@ -59,10 +69,13 @@ class FeedbackExpert(ExpertPolicy):
     softened coupling (``gain``). The expert's own pull servos the grip to a point ``pull_speed * dt`` ahead, a
     velocity loop so stiff that its labels flip between -1 and 1 with the grip's speed; a learner fitted to them
     pulled with their mean, about nothing (the full coupling's orientation hold flips the torque labels likewise).
-    The transit between stitches (``wrench`` mode) is soft for the same reason: the expert's waypoints,
-    but a damped force toward a grip velocity of :data:`~suture_gym.tasks.surgeon.TRANSIT_SPEED` aimed at the
-    current waypoint (in proportion to the distance within :data:`TRANSIT_SLOWDOWN` of it), with the pull's
-    damping, the orientation pulled toward the turn's first pose by the softened coupling (``gain``).
+    The transit between stitches (``wrench`` mode) is soft for the same reason, and a function of the state
+    alone (the expert's waypoints depend on where its transit began): a velocity field
+    (:meth:`transit_velocity`) that rises to :data:`~suture_gym.tasks.surgeon.LIFT` above the next approach pose,
+    crosses at that height and glides down onto it, and turns the needle toward its orientation; the label is
+    the damped force and torque toward those velocities, with the pull's damping and the softened coupling's
+    angular damping, both scaled by ``gain``. It ends within
+    :data:`~suture_gym.tasks.surgeon.WAYPOINT_TOLERANCE` of the approach pose.
 
     Args:
         env, turn_rate, pull_speed: as :class:`ExpertPolicy` (``turn_rate`` is unused while turning, but the
@@ -108,9 +121,10 @@ class FeedbackExpert(ExpertPolicy):
             self.measured = self.angle
         wrench_mode = env.config.action.mode == "wrench"
         if self.phase == "transit" and wrench_mode:
-            waypoint = self._next_waypoint()
-            if waypoint is not None:
-                return self._soft_transit(waypoint)
+            start, quat = sim.arc_grip_target(sim.arcs[self.stitch], self.angle)
+            grip, _ = sim.grip_pose()
+            if np.linalg.norm(start - grip) > WAYPOINT_TOLERANCE:
+                return self._soft_transit(grip, start, quat)
             self.phase = "turn"
         if self.phase == "turn":
             arc = sim.arcs[self.stitch]
@@ -133,16 +147,34 @@ class FeedbackExpert(ExpertPolicy):
         return env.action_for_wrench(thread_pull_wrench(sim, hold, self._pull_direction(self._planned_pull(
             self.stitch)), self.spring))
 
-    def _soft_transit(self, waypoint: np.ndarray) -> np.ndarray:
-        """``wrench``-mode action of the soft transit toward ``waypoint`` (3,) m (see the class docstring)."""
+    @staticmethod
+    def transit_velocity(grip: np.ndarray, start: np.ndarray) -> np.ndarray:
+        """Commanded grip velocity (3,) m/s of the transit at grip position ``grip`` (3,) m toward the approach
+        pose's grip position ``start`` (3,) m: up to :data:`~suture_gym.tasks.surgeon.LIFT` above ``start``
+        (lower within :data:`TRANSIT_GLIDE` of it horizontally, reaching it at zero distance), across only once
+        within :data:`TRANSIT_SLOWDOWN` of that height, each component at most
+        :data:`~suture_gym.tasks.surgeon.TRANSIT_SPEED` and in proportion to what is left within
+        :data:`TRANSIT_SLOWDOWN`."""
+        across = start[:2] - grip[:2]
+        distance = float(np.linalg.norm(across))
+        rise = start[2] + LIFT * min(1.0, distance / TRANSIT_GLIDE) - grip[2]
+        vertical = TRANSIT_SPEED * float(np.clip(rise / TRANSIT_SLOWDOWN, -1.0, 1.0))
+        gate = float(np.clip(1.0 - rise / TRANSIT_SLOWDOWN, 0.0, 1.0))
+        horizontal = TRANSIT_SPEED * gate * across / max(distance, TRANSIT_SLOWDOWN)
+        return np.array([horizontal[0], horizontal[1], vertical])
+
+    def _soft_transit(self, grip: np.ndarray, start: np.ndarray, quat: np.ndarray) -> np.ndarray:
+        """``wrench``-mode action of the transit at grip position ``grip`` (3,) m toward the approach pose
+        ``start`` (3,) m, ``quat`` (4,) (see the class docstring)."""
         sim = self.env.sim
-        grip, _ = sim.grip_pose()
-        _, quat = sim.arc_grip_target(sim.arcs[self.stitch], self.angle)
-        offset = waypoint - grip
-        velocity = TRANSIT_SPEED * offset / max(float(np.linalg.norm(offset)), TRANSIT_SLOWDOWN)
-        damping = PULL_DAMPING_PER_MAX_FORCE * self.env.config.action.max_force
-        return self.env.action_for_wrench(pull_wrench(sim.model.needle, sim.state.needle, quat, damping * velocity,
-                                                      damping, self.spring))
+        needle, state = sim.model.needle, sim.state.needle
+        velocity = needle_point_velocity(needle, state, needle.grip_pos_body)
+        damping = self.gain * PULL_DAMPING_PER_MAX_FORCE * self.env.config.action.max_force
+        turn = quat_rotation_vector(quat_mul(quat, quat_conj(state.body_quat)))
+        omega = TRANSIT_TURN_RATE * turn / max(float(np.linalg.norm(turn)), TRANSIT_TURN_SLOWDOWN)
+        force = damping * (self.transit_velocity(grip, start) - velocity)
+        torque = self.spring.angular_damping * (omega - state.body_omega)
+        return self.env.action_for_wrench(np.concatenate([force, torque]))
 
 
 def expert_episodes(env: gym.Env, episodes: int, seed: int = 0,
