@@ -432,6 +432,35 @@ def _add_at(flat: np.ndarray, index: np.ndarray, step: np.ndarray, sign: float) 
     return largest
 
 
+@njit(cache=True)
+def _spread_impulses(q_before, q, impulse, external, inv_h2, free_index, store, column_of, vertices) -> bool:
+    """:meth:`ImplicitTissue.propagate_rows`'s arithmetic: if any of ``impulse`` (N, 3) kg m is nonzero, ``q``
+    (N, 3) m becomes ``q_before`` plus ``A0^-1 P / h^2`` on the free dofs (``free_index``), summed from the cached
+    columns of ``A0^-1`` (``store``, particle ``v``'s at ``3 column_of[v] ..``) of ``vertices``, the only
+    particles the rows give impulses to; ``external`` (N, 3) N gains ``P / h^2`` and ``impulse`` is zeroed.
+    Returns whether any impulse was nonzero."""
+    moved = False
+    for p in range(impulse.shape[0]):
+        for i in range(3):
+            if impulse[p, i] != 0.0:
+                moved = True
+    if not moved:
+        return False
+    flat = q.reshape(-1)
+    flat[:] = q_before.reshape(-1)
+    for k in range(free_index.shape[0]):
+        s = 0.0
+        for v in vertices:
+            c = 3 * column_of[v]
+            s += store[k, c] * impulse[v, 0] + store[k, c + 1] * impulse[v, 1] + store[k, c + 2] * impulse[v, 2]
+        flat[free_index[k]] += s * inv_h2
+    for p in range(impulse.shape[0]):
+        for i in range(3):
+            external[p, i] += impulse[p, i] * inv_h2
+            impulse[p, i] = 0.0
+    return True
+
+
 def stiffness_matrix(tissue, q: np.ndarray | None = None) -> sp.csr_matrix:
     """Global Hessian of the elastic energy ``d2E/dx dx`` at positions ``q`` (default: the rest shape).
 
@@ -659,21 +688,17 @@ class ImplicitTissue:
 
         The rows moved the vertices they touch (the set ``S``) by ``C_{S,:} P`` (their exact linearised
         response, :mod:`~suture_gym.sim.coupling.compliance`) and summed the tissue's impulses ``P`` (kg m) in
-        the compliance tuple. The whole tissue's response is ``Delta = A0^-1 P / h^2`` (one solve); it equals
-        the rows' moves at ``S``, so ``q = q_before + Delta`` keeps them and moves the rest of the tissue with
-        them. :attr:`external` gains the rows' forces ``P / h^2`` (N), so the next sweep's elastic solve carries
+        the compliance tuple. The whole tissue's response is ``Delta = A0^-1 P / h^2``; it equals the rows' moves
+        at ``S``, so ``q = q_before + Delta`` keeps them and moves the rest of the tissue with them. ``P`` is zero
+        outside ``S``, so ``Delta`` is a sum of ``S``'s columns of ``A0^-1``, which :meth:`begin_rows` cached: a
+        product with ``3 |S|`` columns instead of a solve (``|S|`` is a few vertices; on the environments' pads
+        the solve cost 30-140 us). :attr:`external` gains the rows' forces ``P / h^2`` (N), so the next sweep's elastic solve carries
         their load; the needle and thread took ``-P``, so momentum is exchanged exactly.
         """
-        impulse = self._impulse
-        self.rows_moved = bool(np.any(impulse))
-        if not self.rows_moved:
-            return
-        flat = q.reshape(-1)
-        flat[...] = q_before.reshape(-1)
-        spread = self.factor.solve(_gather(impulse.reshape(-1), self.free_index, self._free_grad)) * self.inv_h2
-        _add_at(flat, self.free_index, spread, 1.0)
-        self.external += impulse * self.inv_h2
-        impulse[...] = 0.0
+        self.rows_moved = _spread_impulses(
+            q_before, q, self._impulse, self.external, self.inv_h2, self.free_index, self._column_store,
+            self._column_of, self.compliance[2],
+        )  # fmt: skip
 
 
 class QuasiNewton(ImplicitTissue):
