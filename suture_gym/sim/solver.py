@@ -197,6 +197,16 @@ def _all_finite(a):
     return True
 
 
+@njit(cache=True)
+def _equal(a: np.ndarray, b: np.ndarray) -> bool:
+    """``np.array_equal`` of two float arrays of the same shape (no NaN is equal), without numpy's per-call cost."""
+    x, y = a.reshape(-1), b.reshape(-1)
+    for k in range(x.shape[0]):
+        if x[k] != y[k]:
+            return False
+    return True
+
+
 @dataclass(frozen=True)
 class Solver:
     """XPBD substep integrator. Holds hyperparameters only; all data lives in Model and State (its per-substep
@@ -545,10 +555,10 @@ class Solver:
         position, quaternion, suture = bodies
         return (
             not integrator.unconverged
-            and np.array_equal(state.tissue.particle_q, tissue_before)
-            and np.array_equal(state.needle.body_pos, position)
-            and np.array_equal(state.needle.body_quat, quaternion)
-            and (suture is None or np.array_equal(state.suture.node_pos, suture))
+            and _equal(state.tissue.particle_q, tissue_before)
+            and _equal(state.needle.body_pos, position)
+            and _equal(state.needle.body_quat, quaternion)
+            and (suture is None or _equal(state.suture.node_pos, suture))
             and not supports_violated(tissue.particle_inv_mass, tissue.support_normal, tissue.support_offset,
                                       state.tissue.particle_q)  # fmt: skip
         )

@@ -512,6 +512,19 @@ def _add_at(flat: np.ndarray, index: np.ndarray, step: np.ndarray, sign: float) 
 
 
 @njit(cache=True)
+def _free_touched(touched: np.ndarray, free_particle: np.ndarray, previous: np.ndarray) -> tuple:
+    """``(vertices, same)``: the particles both ``touched`` and ``free_particle`` ((N,) bool), ascending ``int32``,
+    and whether they are ``previous`` ((m,) int32)."""
+    vertices = np.flatnonzero(touched & free_particle).astype(np.int32)
+    same = vertices.shape[0] == previous.shape[0]
+    if same:
+        for k in range(vertices.shape[0]):
+            if vertices[k] != previous[k]:
+                return vertices, False
+    return vertices, same
+
+
+@njit(cache=True)
 def _spread_impulses(q_before, q, impulse, external, inv_h2, free_index, store, column_of, vertices) -> bool:
     """:meth:`ImplicitTissue.propagate_rows`'s arithmetic: if any of ``impulse`` (N, 3) kg m is nonzero, ``q``
     (N, 3) m becomes ``q_before`` plus ``A0^-1 P / h^2`` on the free dofs (``free_index``), summed from the cached
@@ -527,9 +540,16 @@ def _spread_impulses(q_before, q, impulse, external, inv_h2, free_index, store, 
         return False
     flat = q.reshape(-1)
     flat[:] = q_before.reshape(-1)
+    acting = np.empty(vertices.shape[0], np.int64)  # the vertices with an impulse (the rows' own, not all of S)
+    count = 0
+    for v in vertices:
+        if impulse[v, 0] != 0.0 or impulse[v, 1] != 0.0 or impulse[v, 2] != 0.0:
+            acting[count] = v
+            count += 1
     for k in range(free_index.shape[0]):
         s = 0.0
-        for v in vertices:
+        for a in range(count):
+            v = acting[a]
             c = 3 * column_of[v]
             s += store[k, c] * impulse[v, 0] + store[k, c + 1] * impulse[v, 1] + store[k, c + 2] * impulse[v, 2]
         flat[free_index[k]] += s * inv_h2
@@ -730,8 +750,8 @@ class ImplicitTissue:
         the vertices the rows act on), gathered from cached columns of ``A0^-1`` (``A0`` is constant, so each
         particle's columns are solved for once). Resets the impulse sum :meth:`propagate_rows` spreads."""
         self._impulse[...] = 0.0
-        vertices = np.flatnonzero(touched & self._free_particle).astype(np.int32)
-        if np.array_equal(vertices, self.compliance[2]):  # the same vertices as last substep: the same matrix
+        vertices, same = _free_touched(touched, self._free_particle, self.compliance[2])
+        if same:  # the same vertices as last substep: the same matrix
             return self.compliance
         self._slot[:] = -1
         self._slot[vertices] = np.arange(vertices.size, dtype=np.int32)
@@ -812,13 +832,12 @@ class QuasiNewton(ImplicitTissue):
         self.unconverged = False
         for iteration in range(iterations + MAX_EXTRA_ITERATIONS):
             step = self.factor.solve(_gather(self.grad.reshape(-1), free, self._free_grad))
-            size = np.max(np.abs(step), initial=0.0)
-            if iteration >= iterations and not size > converged:
+            if iteration >= iterations and not np.max(np.abs(step), initial=0.0) > converged:
                 return
+            size = _add_at(flat, free, step, -1.0)  # the step is -A0^-1 grad
             large = iteration == iterations - 1 and size > self.large_step
             self.unconverged = large and not converge
             test_next = iteration != iterations - 1 or (large and converge)
-            _add_at(flat, free, step, -1.0)  # the step is -A0^-1 grad
             trial = self.potential(q, test_next)
             bound = phi + ROUNDOFF * abs(phi)
             halvings = 0
