@@ -392,13 +392,17 @@ def vbd_sweep(
 
 
 @njit(cache=True)
-def _begin_substep(q: np.ndarray, y: np.ndarray, external: np.ndarray, free: np.ndarray, gravity_h2: np.ndarray):
-    """``y <- q``, ``external <- 0``, ``q <- q - h^2 g`` on the free dofs (``free`` the float mask)."""
+def _begin_substep(q, y, external, free, gravity, h2, roller_particle, roller_axis, roller_value) -> None:
+    """``q[roller_particle, roller_axis] <- roller_value`` (m), then ``y <- q``, ``external <- 0``, ``q <- q - h2
+    gravity`` on the free dofs (``free`` the float mask; ``gravity`` (3,) m/s^2, ``h2`` the substep squared,
+    s^2)."""
+    for r in range(roller_particle.shape[0]):
+        q[roller_particle[r], roller_axis[r]] = roller_value[r]
     for p in range(q.shape[0]):
         for i in range(3):
             y[p, i] = q[p, i]
             external[p, i] = 0.0
-            q[p, i] -= gravity_h2[i] * free[p, i]
+            q[p, i] -= gravity[i] * h2 * free[p, i]
 
 
 @njit(cache=True)
@@ -728,11 +732,11 @@ class ImplicitTissue:
     def begin(self, q: np.ndarray, gravity: np.ndarray) -> None:
         """Store the inertial target ``y`` (the predicted ``q``) and move ``q`` to the warm start
         ``y - h^2 g = x_prev + h v`` on the free dofs. Axis-aligned roller axes are set on their planes."""
-        q[self.tissue.roller_particle, self.roller_axis] = self.roller_value
         self.rows_moved = False
         self.unconverged = False
         self.sweeps_done = False
-        _begin_substep(q, self.y, self.external, self.free_mask, gravity * (self.dt * self.dt))
+        _begin_substep(q, self.y, self.external, self.free_mask, gravity, self.dt * self.dt,
+                       self.tissue.roller_particle, self.roller_axis, self.roller_value)  # fmt: skip
 
     def potential(self, q: np.ndarray, with_gradient: bool = True) -> float:
         """``Phi(q) - f_ext . q`` (J) of the current substep, ``f_ext`` the coupling rows' forces of the
