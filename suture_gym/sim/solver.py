@@ -66,7 +66,7 @@ Implicit tissue (``tissue_integrator="quasi_newton"`` or ``"vbd"``, :mod:`suture
 tissue's phase-3 work is an implicit-Euler solve of its elastic energy in place of the tet projection, stable and
 true to its material from 1 kPa to 1 MPa at 1 ms (docs/tissue_integrator.md); the coupling rows then solve
 against the tissue's exact substep compliance among the vertices they touch (set up after detection,
-:mod:`~suture_gym.sim.coupling.compliance`) and their impulses are spread through the tissue by one more solve.
+:mod:`~suture_gym.sim.coupling.compliance`) and their impulses are spread through the tissue (``A0^-1`` times them).
 Coupled scenes need ``iterations=2`` so the elastic solve and the rows alternate.
 
 Robustness: every loop is bounded (fixed sweeps and rod iterations, path buffers of fixed size that flag

@@ -23,7 +23,7 @@ body at static equilibrium, so a resting body stays at rest for any ``h``):
 
 * :class:`QuasiNewton` (``"quasi_newton"``): ``x <- x - A0^-1 grad Phi(x)`` with the constant matrix
   ``A0 = M / h^2 + K0``, ``K0`` the stiffness at the rest shape (the exact Hessian of ``E`` there),
-  factorised once per model and substep (scipy SuperLU). Exact in one iteration for linear elasticity;
+  factorised once per model and substep (CHOLMOD). Exact in one iteration for linear elasticity;
   for large strains and rotations a fixed-point iteration that keeps converging over substeps (Liu et al.
   2017 use the same kind of constant matrix as their quasi-Newton initial Hessian). Optional iterations
   check ``Phi`` and halve a step that raised it.
@@ -37,8 +37,9 @@ Coupling rows (needle, suture) act after the elastic solve. They see the tissue 
 :mod:`~suture_gym.sim.coupling.compliance`): a row's generalised inverse mass is ``n^T (sum_ab b_a b_b C_ab) n``
 and its impulse moves every touched vertex by its exact linearised response, so the rows are Gauss-Seidel on the
 Schur complement of the implicit step. :meth:`ImplicitTissue.propagate_rows` then spreads their summed impulses
-over the whole tissue (one solve with ``A0``; at the touched vertices it reproduces the rows' moves exactly) and
-adds their forces to the next sweep's solve: the tissue takes exactly the impulses the needle and thread gave it.
+over the whole tissue (``A0^-1`` times them, from the cached columns of the touched vertices; there it reproduces
+the rows' moves exactly) and adds their forces to the next sweep's solve: the tissue takes exactly the impulses the
+needle and thread gave it.
 Two sweeps per substep (``Solver.iterations = 2``) let the elastic solve carry the rows' load; with one, a tip
 pushed 1 N into 100 kPa tissue falls through it (docs/tissue_integrator.md).
 """
