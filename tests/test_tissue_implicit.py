@@ -2,6 +2,7 @@
 clear errors for settings outside what they support."""
 
 import warnings
+from dataclasses import replace
 
 import numpy as np
 import pytest
@@ -122,6 +123,27 @@ def test_global_stiffness_annihilates_rigid_translation_and_gradient_vanishes_at
     integrator.external[...] = 0.0
     assert integrator.potential(tissue.particle_rest_q.copy()) == pytest.approx(0.0, abs=1e-15)
     assert np.abs(integrator.grad).max() < 1e-12
+
+
+def test_rest_system_is_the_rest_stiffness_plus_the_mass_term_for_each_modulus():
+    """The integrator's A0, assembled through the cached per-mesh pattern and the closed-form rest stiffness, is
+    M / h^2 plus stiffness_matrix's K0 (the general tangent at F = I), also for a second modulus on the same mesh
+    (the pattern reused), a layered material and a roller-held axis."""
+    for material, roller in ((TissueMaterial(1.0e5, 0.45), False), (TissueMaterial(3.0e3, 0.3), True)):
+        scene = suturing_pad(size=(0.006, 0.006, 0.004), cells=(3, 3, 2), material=material)
+        tissue = scene.model.tissue
+        if roller:
+            held = int(np.flatnonzero(tissue.particle_inv_mass > 0)[0])
+            tissue = replace(tissue, tet_mu=tissue.tet_mu * np.linspace(1.0, 4.0, tissue.tet_count),
+                             tet_lambda=tissue.tet_lambda * np.linspace(1.0, 4.0, tissue.tet_count),
+                             roller_particle=np.array([held], np.int32), roller_normal=np.array([[0.0, 0.0, 1.0]]),
+                             roller_offset=np.array([tissue.particle_rest_q[held, 2]]))  # fmt: skip
+        integrator = QuasiNewton(tissue, 1e-3)
+        free = integrator.free_index
+        a0 = (stiffness_matrix(tissue)[free][:, free]
+              + scipy.sparse.diags(np.repeat(tissue.particle_mass, 3)[free] * 1e6)).toarray()  # fmt: skip
+        rhs = np.random.default_rng(0).standard_normal((free.size, 3))
+        np.testing.assert_allclose(integrator.factor.solve(rhs), np.linalg.solve(a0, rhs), rtol=1e-9, atol=1e-15)
 
 
 def _loaded_state(kind: str, youngs: float):
@@ -259,7 +281,6 @@ def test_axis_aligned_rollers_are_held_and_others_rejected():
     tissue = scene.model.tissue
     q = scene.state.tissue.particle_q
     assert np.allclose(np.einsum("ij,ij->i", q[tissue.roller_particle], tissue.roller_normal), tissue.roller_offset)
-    from dataclasses import replace
 
     tilted = replace(tissue, roller_normal=np.tile([0.6, 0.8, 0.0], (len(tissue.roller_particle), 1)))
     with pytest.raises(ValueError, match="axis-aligned"):

@@ -66,7 +66,7 @@ Implicit tissue (``tissue_integrator="quasi_newton"`` or ``"vbd"``, :mod:`suture
 tissue's phase-3 work is an implicit-Euler solve of its elastic energy in place of the tet projection, stable and
 true to its material from 1 kPa to 1 MPa at 1 ms (docs/tissue_integrator.md); the coupling rows then solve
 against the tissue's exact substep compliance among the vertices they touch (set up after detection,
-:mod:`~suture_gym.sim.coupling.compliance`) and their impulses are spread through the tissue by one more solve.
+:mod:`~suture_gym.sim.coupling.compliance`) and their impulses are spread through the tissue (``A0^-1`` times them).
 Coupled scenes need ``iterations=2`` so the elastic solve and the rows alternate.
 
 Robustness: every loop is bounded (fixed sweeps and rod iterations, path buffers of fixed size that flag
@@ -193,6 +193,16 @@ def update_particle_velocities(q: np.ndarray, q_prev: np.ndarray, dt: float, max
 def _all_finite(a):
     for v in a.flat:
         if not math.isfinite(v):
+            return False
+    return True
+
+
+@njit(cache=True)
+def _equal(a: np.ndarray, b: np.ndarray) -> bool:
+    """``np.array_equal`` of two float arrays of the same shape (no NaN is equal), without numpy's per-call cost."""
+    x, y = a.reshape(-1), b.reshape(-1)
+    for k in range(x.shape[0]):
+        if x[k] != y[k]:
             return False
     return True
 
@@ -545,10 +555,10 @@ class Solver:
         position, quaternion, suture = bodies
         return (
             not integrator.unconverged
-            and np.array_equal(state.tissue.particle_q, tissue_before)
-            and np.array_equal(state.needle.body_pos, position)
-            and np.array_equal(state.needle.body_quat, quaternion)
-            and (suture is None or np.array_equal(state.suture.node_pos, suture))
+            and _equal(state.tissue.particle_q, tissue_before)
+            and _equal(state.needle.body_pos, position)
+            and _equal(state.needle.body_quat, quaternion)
+            and (suture is None or _equal(state.suture.node_pos, suture))
             and not supports_violated(tissue.particle_inv_mass, tissue.support_normal, tissue.support_offset,
                                       state.tissue.particle_q)  # fmt: skip
         )

@@ -23,7 +23,7 @@ body at static equilibrium, so a resting body stays at rest for any ``h``):
 
 * :class:`QuasiNewton` (``"quasi_newton"``): ``x <- x - A0^-1 grad Phi(x)`` with the constant matrix
   ``A0 = M / h^2 + K0``, ``K0`` the stiffness at the rest shape (the exact Hessian of ``E`` there),
-  factorised once per model and substep (scipy SuperLU). Exact in one iteration for linear elasticity;
+  factorised once per model and substep (CHOLMOD). Exact in one iteration for linear elasticity;
   for large strains and rotations a fixed-point iteration that keeps converging over substeps (Liu et al.
   2017 use the same kind of constant matrix as their quasi-Newton initial Hessian). Optional iterations
   check ``Phi`` and halve a step that raised it.
@@ -37,8 +37,9 @@ Coupling rows (needle, suture) act after the elastic solve. They see the tissue 
 :mod:`~suture_gym.sim.coupling.compliance`): a row's generalised inverse mass is ``n^T (sum_ab b_a b_b C_ab) n``
 and its impulse moves every touched vertex by its exact linearised response, so the rows are Gauss-Seidel on the
 Schur complement of the implicit step. :meth:`ImplicitTissue.propagate_rows` then spreads their summed impulses
-over the whole tissue (one solve with ``A0``; at the touched vertices it reproduces the rows' moves exactly) and
-adds their forces to the next sweep's solve: the tissue takes exactly the impulses the needle and thread gave it.
+over the whole tissue (``A0^-1`` times them, from the cached columns of the touched vertices; there it reproduces
+the rows' moves exactly) and adds their forces to the next sweep's solve: the tissue takes exactly the impulses the
+needle and thread gave it.
 Two sweeps per substep (``Solver.iterations = 2``) let the elastic solve carry the rows' load; with one, a tip
 pushed 1 N into 100 kPa tissue falls through it (docs/tissue_integrator.md).
 """
@@ -392,13 +393,17 @@ def vbd_sweep(
 
 
 @njit(cache=True)
-def _begin_substep(q: np.ndarray, y: np.ndarray, external: np.ndarray, free: np.ndarray, gravity_h2: np.ndarray):
-    """``y <- q``, ``external <- 0``, ``q <- q - h^2 g`` on the free dofs (``free`` the float mask)."""
+def _begin_substep(q, y, external, free, gravity, h2, roller_particle, roller_axis, roller_value) -> None:
+    """``q[roller_particle, roller_axis] <- roller_value`` (m), then ``y <- q``, ``external <- 0``, ``q <- q - h2
+    gravity`` on the free dofs (``free`` the float mask; ``gravity`` (3,) m/s^2, ``h2`` the substep squared,
+    s^2)."""
+    for r in range(roller_particle.shape[0]):
+        q[roller_particle[r], roller_axis[r]] = roller_value[r]
     for p in range(q.shape[0]):
         for i in range(3):
             y[p, i] = q[p, i]
             external[p, i] = 0.0
-            q[p, i] -= gravity_h2[i] * free[p, i]
+            q[p, i] -= gravity[i] * h2 * free[p, i]
 
 
 @njit(cache=True)
@@ -411,6 +416,85 @@ def _stiffness_blocks(q, tet_indices, tet_dm_inv, tet_rest_volume, tet_mu, tet_l
             for a in range(3):
                 x[k, a] = q[tet_indices[t, k], a]
         tet_stiffness(x, tet_dm_inv[t], tet_rest_volume[t], tet_mu[t], tet_lambda[t], blocks[t])
+
+
+@njit(cache=True)
+def _assemble_rest_system(tet_indices, tet_dm_inv, tet_rest_volume, tet_mu, tet_lambda, entry, diagonal,
+                          diagonal_values, data) -> None:  # fmt: skip
+    """``A0 = K0 + diag`` into ``data`` (the CSC values of :class:`_RestPattern`, N/m): each tet's rest stiffness
+    summed into its entries (``entry`` (T, 144), -1 for a held dof), in tet order, then ``diagonal_values`` (n,)
+    N/m at the diagonal (``diagonal`` (n,)).
+
+    At the rest shape (``F = I``) :func:`tet_stiffness`'s tangent is linear elasticity's, ``C_ajbm = mu d_ab d_jm
+    + (lambda - mu) d_aj d_bm + mu d_am d_jb`` (``lambda`` the hydrostatic modulus), so node ``k``'s block with
+    node ``n`` is ``V0 (mu (g_k . g_n) I + (lambda - mu) g_k g_n^T + mu g_n g_k^T)``: the same matrix up to
+    round-off, without the general tangent's 12 x 12 x 9 sums (4 ms of a rebuild on WoundClosure's 3,600 tets)."""
+    g = np.empty((4, 3))
+    for t in range(tet_indices.shape[0]):
+        _shape_gradients(tet_dm_inv[t], g)
+        volume = tet_rest_volume[t]
+        vm = volume * tet_mu[t]
+        vl = volume * (tet_lambda[t] - tet_mu[t])
+        for k in range(4):
+            for n in range(4):
+                dot = vm * (g[k, 0] * g[n, 0] + g[k, 1] * g[n, 1] + g[k, 2] * g[n, 2])
+                for a in range(3):
+                    for b in range(3):
+                        e = entry[t, 12 * (3 * k + a) + 3 * n + b]
+                        if e >= 0:
+                            value = vl * g[k, a] * g[n, b] + vm * g[k, b] * g[n, a]
+                            data[e] += value + dot if a == b else value
+    for i in range(diagonal.shape[0]):
+        data[diagonal[i]] += diagonal_values[i]
+
+
+class _RestPattern:
+    """The sparsity pattern of ``A0`` over the free dofs (CSC, both triangles) of one mesh and set of free dofs,
+    and where each tet's stiffness entries and each diagonal entry go in its values: what a rebuild for a new
+    modulus reuses (:func:`_rest_pattern`).
+
+    Attributes:
+        indptr, indices: ``(n + 1,)``, ``(nnz,) int32`` CSC structure, rows sorted within each column.
+        entry: ``(T, 144) int32`` value index of tet ``t``'s stiffness entry ``(r, c)`` at ``12 r + c`` (the
+            layout of :func:`tet_stiffness`), -1 where either dof is held.
+        diagonal: ``(n,) int32`` value index of each diagonal entry.
+    """
+
+    def __init__(self, tet_indices: np.ndarray, particle_count: int, free_index: np.ndarray):
+        n = free_index.size
+        position = np.full(3 * particle_count, -1, np.int64)
+        position[free_index] = np.arange(n)
+        free_dof = position[(3 * tet_indices[:, :, None] + np.arange(3)).reshape(-1, 12)]
+        rows = np.repeat(free_dof, 12, axis=1)
+        cols = np.tile(free_dof, (1, 12))
+        valid = (rows >= 0) & (cols >= 0)
+        keys = cols * n + rows  # column-major: sorted keys are the CSC order
+        diagonal_keys = np.arange(n) * (n + 1)
+        structure = np.unique(np.concatenate([keys[valid], diagonal_keys]))
+        self.indptr = np.searchsorted(structure, np.arange(n + 1) * n).astype(np.int32)
+        self.indices = (structure % n).astype(np.int32)
+        self.entry = np.where(valid, np.searchsorted(structure, keys), -1).astype(np.int32)
+        self.diagonal = np.searchsorted(structure, diagonal_keys).astype(np.int32)
+
+
+#: :class:`_RestPattern` by mesh and free dofs, the most recent :data:`_PATTERN_CACHE_SIZE`: the environments build
+#: a new integrator for the same mesh at every reset that draws a new modulus (on WoundClosure's pad the assembly
+#: through scipy's COO-to-CSR conversion was 9 ms of a 28 ms rebuild; through the pattern it is under 1 ms and the
+#: rebuild 13 ms, mostly CHOLMOD's analysis and factorisation).
+_PATTERNS: dict = {}
+_PATTERN_CACHE_SIZE = 8
+
+
+def _rest_pattern(tissue, free_index: np.ndarray) -> _RestPattern:
+    """The cached :class:`_RestPattern` of ``tissue``'s mesh with free dofs ``free_index``, made on first use."""
+    key = (tissue.particle_count, tissue.tet_indices.tobytes(), free_index.tobytes())
+    pattern = _PATTERNS.pop(key, None)
+    if pattern is None:
+        pattern = _RestPattern(tissue.tet_indices, tissue.particle_count, free_index)
+        if len(_PATTERNS) >= _PATTERN_CACHE_SIZE:
+            del _PATTERNS[next(iter(_PATTERNS))]
+    _PATTERNS[key] = pattern
+    return pattern
 
 
 @njit(cache=True)
@@ -430,6 +514,77 @@ def _add_at(flat: np.ndarray, index: np.ndarray, step: np.ndarray, sign: float) 
         flat[index[k]] += sign * step[k]
         largest = max(largest, abs(step[k]))
     return largest
+
+
+@njit(cache=True)
+def _free_touched(touched: np.ndarray, free_particle: np.ndarray, previous: np.ndarray) -> tuple:
+    """``(vertices, same)``: the particles both ``touched`` and ``free_particle`` ((N,) bool), ascending ``int32``,
+    and whether they are ``previous`` ((m,) int32)."""
+    vertices = np.flatnonzero(touched & free_particle).astype(np.int32)
+    same = vertices.shape[0] == previous.shape[0]
+    if same:
+        for k in range(vertices.shape[0]):
+            if vertices[k] != previous[k]:
+                return vertices, False
+    return vertices, same
+
+
+@njit(cache=True)
+def _row_compliance(store, free_position, column_of, vertices, inv_h2, slot) -> np.ndarray:
+    """The ``(3m, 3m)`` compliance block (1/kg) among ``vertices`` (m,): ``A0^-1`` (``store``, particle ``v``'s
+    columns at ``3 column_of[v] ..``, rows by ``free_position`` of each dof, -1 held: a zero row) times ``inv_h2``
+    (1/s^2). Writes each vertex's index into ``slot`` (N,), -1 for the others (a vertex set changes in a
+    fraction of substeps: 16-20 us through numpy's fancy indexing)."""
+    slot[:] = -1
+    m = vertices.shape[0]
+    matrix = np.zeros((3 * m, 3 * m))
+    for a in range(m):
+        slot[vertices[a]] = a
+        for i in range(3):
+            row = free_position[3 * vertices[a] + i]
+            if row < 0:
+                continue
+            for b in range(m):
+                c = 3 * column_of[vertices[b]]
+                for j in range(3):
+                    matrix[3 * a + i, 3 * b + j] = store[row, c + j] * inv_h2
+    return matrix
+
+
+@njit(cache=True)
+def _spread_impulses(q_before, q, impulse, external, inv_h2, free_index, store, column_of, vertices) -> bool:
+    """:meth:`ImplicitTissue.propagate_rows`'s arithmetic: if any of ``impulse`` (N, 3) kg m is nonzero, ``q``
+    (N, 3) m becomes ``q_before`` plus ``A0^-1 P / h^2`` on the free dofs (``free_index``), summed from the cached
+    columns of ``A0^-1`` (``store``, particle ``v``'s at ``3 column_of[v] ..``) of ``vertices``, the only
+    particles the rows give impulses to; ``external`` (N, 3) N gains ``P / h^2`` and ``impulse`` is zeroed.
+    Returns whether any impulse was nonzero."""
+    moved = False
+    for p in range(impulse.shape[0]):
+        for i in range(3):
+            if impulse[p, i] != 0.0:
+                moved = True
+    if not moved:
+        return False
+    flat = q.reshape(-1)
+    flat[:] = q_before.reshape(-1)
+    acting = np.empty(vertices.shape[0], np.int64)  # the vertices with an impulse (the rows' own, not all of S)
+    count = 0
+    for v in vertices:
+        if impulse[v, 0] != 0.0 or impulse[v, 1] != 0.0 or impulse[v, 2] != 0.0:
+            acting[count] = v
+            count += 1
+    for k in range(free_index.shape[0]):
+        s = 0.0
+        for a in range(count):
+            v = acting[a]
+            c = 3 * column_of[v]
+            s += store[k, c] * impulse[v, 0] + store[k, c + 1] * impulse[v, 1] + store[k, c + 2] * impulse[v, 2]
+        flat[free_index[k]] += s * inv_h2
+    for p in range(impulse.shape[0]):
+        for i in range(3):
+            external[p, i] += impulse[p, i] * inv_h2
+            impulse[p, i] = 0.0
+    return True
 
 
 def stiffness_matrix(tissue, q: np.ndarray | None = None) -> sp.csr_matrix:
@@ -554,10 +709,15 @@ class ImplicitTissue:
         self.roller_axis = np.argmax(np.abs(normal), axis=1)
         self.roller_value = tissue.roller_offset / normal[np.arange(self.roller_axis.size), self.roller_axis]
         self.free_index = np.flatnonzero(self.free.ravel())
-        mass = np.repeat(tissue.particle_mass, 3)
-        stiffness = stiffness_matrix(tissue)
-        a0 = stiffness[self.free_index][:, self.free_index] + sp.diags(mass[self.free_index] * self.inv_h2)
-        self.factor = SparseCholesky(a0)
+        pattern = _rest_pattern(tissue, self.free_index)
+        data = np.zeros(pattern.indices.size)
+        _assemble_rest_system(
+            tissue.tet_indices, tissue.tet_dm_inv, tissue.tet_rest_volume, tissue.tet_mu,
+            tissue.tet_lambda, pattern.entry, pattern.diagonal,
+            np.repeat(tissue.particle_mass, 3)[self.free_index] * self.inv_h2, data,
+        )  # fmt: skip
+        n = self.free_index.size
+        self.factor = SparseCholesky(sp.csc_matrix((data, pattern.indices, pattern.indptr), shape=(n, n)))
         edges = tissue.particle_rest_q[tissue.tet_indices[:, [1, 2, 3, 2, 3, 3]]] - tissue.particle_rest_q[
             tissue.tet_indices[:, [0, 0, 0, 1, 1, 2]]]
         #: Step (m) above which :class:`QuasiNewton` tests its solve for convergence (:data:`LARGE_STEP_FRACTION`
@@ -595,11 +755,11 @@ class ImplicitTissue:
     def begin(self, q: np.ndarray, gravity: np.ndarray) -> None:
         """Store the inertial target ``y`` (the predicted ``q``) and move ``q`` to the warm start
         ``y - h^2 g = x_prev + h v`` on the free dofs. Axis-aligned roller axes are set on their planes."""
-        q[self.tissue.roller_particle, self.roller_axis] = self.roller_value
         self.rows_moved = False
         self.unconverged = False
         self.sweeps_done = False
-        _begin_substep(q, self.y, self.external, self.free_mask, gravity * (self.dt * self.dt))
+        _begin_substep(q, self.y, self.external, self.free_mask, gravity, self.dt * self.dt,
+                       self.tissue.roller_particle, self.roller_axis, self.roller_value)  # fmt: skip
 
     def potential(self, q: np.ndarray, with_gradient: bool = True) -> float:
         """``Phi(q) - f_ext . q`` (J) of the current substep, ``f_ext`` the coupling rows' forces of the
@@ -617,18 +777,12 @@ class ImplicitTissue:
         the vertices the rows act on), gathered from cached columns of ``A0^-1`` (``A0`` is constant, so each
         particle's columns are solved for once). Resets the impulse sum :meth:`propagate_rows` spreads."""
         self._impulse[...] = 0.0
-        vertices = np.flatnonzero(touched & self._free_particle).astype(np.int32)
-        if np.array_equal(vertices, self.compliance[2]):  # the same vertices as last substep: the same matrix
+        vertices, same = _free_touched(touched, self._free_particle, self.compliance[2])
+        if same:  # the same vertices as last substep: the same matrix
             return self.compliance
-        self._slot[:] = -1
-        self._slot[vertices] = np.arange(vertices.size, dtype=np.int32)
         self._solve_columns(vertices)
-        dofs = (3 * vertices[:, None] + np.arange(3)).ravel()
-        position = self._free_position[dofs]
-        columns = (3 * self._column_of[vertices][:, None] + np.arange(3)).ravel()
-        matrix = np.zeros((dofs.size, dofs.size))
-        free = position >= 0
-        matrix[free] = self._column_store[np.ix_(position[free], columns)] * self.inv_h2
+        matrix = _row_compliance(self._column_store, self._free_position, self._column_of, vertices, self.inv_h2,
+                                 self._slot)  # fmt: skip
         self.compliance = (self.tissue.particle_inv_mass, self._slot, vertices, matrix, self._impulse)
         return self.compliance
 
@@ -659,21 +813,17 @@ class ImplicitTissue:
 
         The rows moved the vertices they touch (the set ``S``) by ``C_{S,:} P`` (their exact linearised
         response, :mod:`~suture_gym.sim.coupling.compliance`) and summed the tissue's impulses ``P`` (kg m) in
-        the compliance tuple. The whole tissue's response is ``Delta = A0^-1 P / h^2`` (one solve); it equals
-        the rows' moves at ``S``, so ``q = q_before + Delta`` keeps them and moves the rest of the tissue with
-        them. :attr:`external` gains the rows' forces ``P / h^2`` (N), so the next sweep's elastic solve carries
-        their load; the needle and thread took ``-P``, so momentum is exchanged exactly.
+        the compliance tuple. The whole tissue's response is ``Delta = A0^-1 P / h^2``; it equals the rows' moves
+        at ``S``, so ``q = q_before + Delta`` keeps them and moves the rest of the tissue with them. ``P`` is zero
+        outside ``S``, so ``Delta`` is a sum of ``S``'s columns of ``A0^-1``, which :meth:`begin_rows` cached: a
+        product with ``3 |S|`` columns instead of a solve (``|S|`` is a few vertices; on the environments' pads
+        the solve cost 30-140 us). :attr:`external` gains the rows' forces ``P / h^2`` (N), so the next sweep's
+        elastic solve carries their load; the needle and thread took ``-P``, so momentum is exchanged exactly.
         """
-        impulse = self._impulse
-        self.rows_moved = bool(np.any(impulse))
-        if not self.rows_moved:
-            return
-        flat = q.reshape(-1)
-        flat[...] = q_before.reshape(-1)
-        spread = self.factor.solve(_gather(impulse.reshape(-1), self.free_index, self._free_grad)) * self.inv_h2
-        _add_at(flat, self.free_index, spread, 1.0)
-        self.external += impulse * self.inv_h2
-        impulse[...] = 0.0
+        self.rows_moved = _spread_impulses(
+            q_before, q, self._impulse, self.external, self.inv_h2, self.free_index, self._column_store,
+            self._column_of, self.compliance[2],
+        )  # fmt: skip
 
 
 class QuasiNewton(ImplicitTissue):
@@ -703,13 +853,12 @@ class QuasiNewton(ImplicitTissue):
         self.unconverged = False
         for iteration in range(iterations + MAX_EXTRA_ITERATIONS):
             step = self.factor.solve(_gather(self.grad.reshape(-1), free, self._free_grad))
-            size = np.max(np.abs(step), initial=0.0)
-            if iteration >= iterations and not size > converged:
+            if iteration >= iterations and not np.max(np.abs(step), initial=0.0) > converged:
                 return
+            size = _add_at(flat, free, step, -1.0)  # the step is -A0^-1 grad
             large = iteration == iterations - 1 and size > self.large_step
             self.unconverged = large and not converge
             test_next = iteration != iterations - 1 or (large and converge)
-            _add_at(flat, free, step, -1.0)  # the step is -A0^-1 grad
             trial = self.potential(q, test_next)
             bound = phi + ROUNDOFF * abs(phi)
             halvings = 0
