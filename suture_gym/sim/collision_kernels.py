@@ -44,7 +44,7 @@ def _segment_closest(px, py, pz, ax, ay, az, bx, by, bz):
     return t, dx * dx + dy * dy + dz * dz
 
 
-@njit(cache=True)
+@njit(cache=True, inline="always")
 def _closest_bary_degenerate(px, py, pz, ax, ay, az, bx, by, bz, cx, cy, cz):
     """Closest point on a zero-area triangle: the nearest of its three edges (first wins ties)."""
     t0, d0 = _segment_closest(px, py, pz, ax, ay, az, bx, by, bz)
@@ -162,7 +162,7 @@ def _tri_unit_normal(vertex_q, i0, i1, i2):
     return nx * inv, ny * inv, nz * inv
 
 
-@njit(cache=True)
+@njit(cache=True, inline="always")
 def _corner_angle(vertex_q, i0, i1, i2):
     """Interior angle [rad] at x0 of triangle (x0, x1, x2); 0 when an edge has zero length."""
     ax = vertex_q[i1, 0] - vertex_q[i0, 0]
@@ -563,7 +563,7 @@ def _edge_admits(volume, sigma, iu, iv):
     return volume * sigma > 0.0 or (volume == 0.0 and iu < iv)
 
 
-@njit(cache=True)
+@njit(cache=True, inline="always")
 def _segment_triangle(p0x, p0y, p0z, p1x, p1y, p1z, i0, i1, i2, vertex_q):
     """Crossing of segment p0 -> p1 with triangle (x0, x1, x2).
 

@@ -106,7 +106,7 @@ def tissue_point(tissue_q, idx, weight):
     return p
 
 
-@njit(cache=True)
+@njit(cache=True, inline="always")
 def _vertex_normal(v, tri_vertices, vertex_tri_start, vertex_tri_index, tissue_q):
     """Area-weighted normal (3,) of surface vertex ``v`` (sum of the cross products of its triangles, not unit)."""
     n = np.zeros(3)

@@ -314,7 +314,7 @@ def apply_friction_reaction(needle_node_count, friction_rows, contact_cap, conta
         move_point(tissue, row_tissue[i], row_weight[i], dlam, contact_normal[j], tissue_q)
 
 
-@njit(cache=True)
+@njit(cache=True, inline="always")
 def _strand_point(node, needle_node_count, needle_pos, needle_quat, needle_node_body, suture_q):
     """World position (3,) of strand node ``node`` (needle node from the pose, or suture node)."""
     if node < needle_node_count:
