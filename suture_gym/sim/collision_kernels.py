@@ -276,10 +276,10 @@ def _nearest_triangle(
     best_v = 0.0
     best_w = 0.0
     best_feature = -1
-    root_d2 = _box_dist2(px, py, pz, node_lo, node_hi, 0)
+    stack[0] = 0
+    root_d2 = _box_dist2(px, py, pz, node_lo, node_hi, stack[0])
     if root_d2 > best_d2:
         return best_tri, best_u, best_v, best_w, best_feature, best_d2
-    stack[0] = 0
     stack_d2[0] = root_d2
     top = 1
     while top > 0:

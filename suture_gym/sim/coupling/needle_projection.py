@@ -69,7 +69,7 @@ def _project_contact(
     if is_diagonal(tissue):
         w += bary[0] ** 2 * tissue_w[i0] + bary[1] ** 2 * tissue_w[i1] + bary[2] ** 2 * tissue_w[i2]
     else:
-        w += point_inv_mass(tissue, tri_vertices[tri], bary, 3, normal)
+        w += point_inv_mass(tissue, tri_vertices[tri], bary, bary.shape[0], normal)
     dlam = xpbd_delta_lambda(c, w, 0.0, lam)
     if lam + dlam < 0.0:
         dlam = -lam
@@ -79,7 +79,7 @@ def _project_contact(
             vi = tri_vertices[tri, k]
             tissue_q[vi] -= tissue_w[vi] * bary[k] * dlam * normal
     else:
-        apply_impulse(tissue, tri_vertices[tri], bary, 3, dlam * normal, tissue_q)
+        apply_impulse(tissue, tri_vertices[tri], bary, bary.shape[0], dlam * normal, tissue_q)
     return lam + dlam
 
 
@@ -102,7 +102,7 @@ def _anchor_point(tri, bary, tri_vertices, tissue_q, tissue, patch):
             for a in range(3):
                 k_tissue[a, a] = w_tissue
         else:
-            point_compliance(tissue, tri_vertices[tri], bary, 3, k_tissue)
+            point_compliance(tissue, tri_vertices[tri], bary, bary.shape[0], k_tissue)
         return p, k_tissue
     p = offset.copy()
     w_tissue = 0.0
@@ -208,7 +208,7 @@ def _project_anchor(
     tissue_inv_mass = tissue[0]
     if not is_diagonal(tissue):
         if count == 0:
-            apply_impulse(tissue, tri_vertices[tri], bary, 3, impulse, tissue_q)
+            apply_impulse(tissue, tri_vertices[tri], bary, bary.shape[0], impulse, tissue_q)
         else:
             apply_impulse(tissue, vertex, weight, count, impulse, tissue_q)
     elif count == 0:
