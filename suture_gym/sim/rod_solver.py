@@ -313,7 +313,7 @@ def solve_block_tridiagonal(diag, lower, rhs, dinv, y, z):
             z[b, i] = t
 
 
-@njit(cache=True)
+@njit(cache=True, inline="always")
 def align_frames(node_pos, seg_inv_inertia, seg_quat):
     """Parallel-transport each free segment frame so that d3 points along its edge (minimal rotation).
 
@@ -347,7 +347,7 @@ def align_frames(node_pos, seg_inv_inertia, seg_quat):
         quat_turn_into(seg_quat[j], theta, seg_quat[j])
 
 
-@njit(cache=True)
+@njit(cache=True, inline="always")
 def _relative_rotation_vector(q, q0, out):
     """Write the rotation vector (rad, world) of ``q conj(q0)`` into ``out`` (3,), the short way."""
     w = q[0] * q0[0] + q[1] * q0[1] + q[2] * q0[2] + q[3] * q0[3]

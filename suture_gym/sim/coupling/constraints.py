@@ -48,7 +48,7 @@ def node_path_constraint(q, p, t):
     return True, c, n
 
 
-@njit(cache=True)
+@njit(cache=True, inline="always")
 def node_access_constraint(pa, pb, b, rest_length):
     """Node-access constraint of paper eq. 3: ``C = |b - pa| + |b - pb| - l``.
 
