@@ -302,17 +302,21 @@ for env_id in ENV_IDS:
 
 def _cold_start_run(cache_dir: str) -> dict:
     """Seconds after the import and after each id's first step of one :data:`_COLD_START_CHILD` run with the
-    numba cache ``cache_dir``."""
+    numba cache ``cache_dir``, and the child's CPU seconds (user + system) under ``"cpu"``."""
     import json
+    import resource
     import subprocess
     import sys
 
     root = str(Path(suture_gym.envs.__file__).resolve().parents[2])
     env = {**os.environ, "NUMBA_CACHE_DIR": cache_dir, "NUMBA_NUM_THREADS": "1",
            "PYTHONPATH": os.pathsep.join(p for p in (root, os.environ.get("PYTHONPATH")) if p)}
+    before = resource.getrusage(resource.RUSAGE_CHILDREN)
     done = subprocess.run([sys.executable, "-c", _COLD_START_CHILD], env=env, capture_output=True, text=True,
                           check=True, timeout=3600)
-    return {e["event"]: e["t"] for e in map(json.loads, done.stdout.splitlines())}
+    after = resource.getrusage(resource.RUSAGE_CHILDREN)
+    cpu = (after.ru_utime - before.ru_utime) + (after.ru_stime - before.ru_stime)
+    return {**{e["event"]: e["t"] for e in map(json.loads, done.stdout.splitlines())}, "cpu": cpu}
 
 
 @benchmark("cold_start")
@@ -322,20 +326,23 @@ def bench_cold_start() -> dict:
     order (``first_step_s``: seconds since its start, so each id's figure includes the ids before it;
     ``added_s``: what each id added). Then a second interpreter on the now filled cache (``warm_first_step_s``):
     what every later start costs. One thread; compilation is CPU-bound, so other load on the machine
-    (``load_average``) lengthens it."""
+    (``load_average``) lengthens it; ``cpu_s`` and ``warm_cpu_s``, the CPU seconds (user + system) of each
+    interpreter, depend on that load much less."""
     import tempfile
 
     with tempfile.TemporaryDirectory(prefix="suture_gym_cold_") as cache:
         cold = _cold_start_run(cache)
         warm = _cold_start_run(cache)
-    ids = [k for k in cold if k != "import"]
+    ids = [k for k in cold if k not in ("import", "cpu")]
     added = {env_id: cold[env_id] - (cold[ids[k - 1]] if k else cold["import"]) for k, env_id in enumerate(ids)}
     return {
         "import_s": cold["import"],
         "first_step_s": {env_id: cold[env_id] for env_id in ids},
         "added_s": added,
         "total_s": cold[ids[-1]],
+        "cpu_s": cold["cpu"],
         "warm_first_step_s": {env_id: warm[env_id] for env_id in ids},
+        "warm_cpu_s": warm["cpu"],
         "load_average": os.getloadavg()[0] if hasattr(os, "getloadavg") else None,
         "workload": "fresh interpreter, empty NUMBA_CACHE_DIR, gym.make + reset + one zero action per flat id",
     }

@@ -44,7 +44,7 @@ def _segment_closest(px, py, pz, ax, ay, az, bx, by, bz):
     return t, dx * dx + dy * dy + dz * dz
 
 
-@njit(cache=True)
+@njit(cache=True, inline="always")
 def _closest_bary_degenerate(px, py, pz, ax, ay, az, bx, by, bz, cx, cy, cz):
     """Closest point on a zero-area triangle: the nearest of its three edges (first wins ties)."""
     t0, d0 = _segment_closest(px, py, pz, ax, ay, az, bx, by, bz)
@@ -162,7 +162,7 @@ def _tri_unit_normal(vertex_q, i0, i1, i2):
     return nx * inv, ny * inv, nz * inv
 
 
-@njit(cache=True)
+@njit(cache=True, inline="always")
 def _corner_angle(vertex_q, i0, i1, i2):
     """Interior angle [rad] at x0 of triangle (x0, x1, x2); 0 when an edge has zero length."""
     ax = vertex_q[i1, 0] - vertex_q[i0, 0]
@@ -276,10 +276,10 @@ def _nearest_triangle(
     best_v = 0.0
     best_w = 0.0
     best_feature = -1
-    root_d2 = _box_dist2(px, py, pz, node_lo, node_hi, 0)
+    stack[0] = 0
+    root_d2 = _box_dist2(px, py, pz, node_lo, node_hi, stack[0])
     if root_d2 > best_d2:
         return best_tri, best_u, best_v, best_w, best_feature, best_d2
-    stack[0] = 0
     stack_d2[0] = root_d2
     top = 1
     while top > 0:
@@ -563,7 +563,7 @@ def _edge_admits(volume, sigma, iu, iv):
     return volume * sigma > 0.0 or (volume == 0.0 and iu < iv)
 
 
-@njit(cache=True)
+@njit(cache=True, inline="always")
 def _segment_triangle(p0x, p0y, p0z, p1x, p1y, p1z, i0, i1, i2, vertex_q):
     """Crossing of segment p0 -> p1 with triangle (x0, x1, x2).
 

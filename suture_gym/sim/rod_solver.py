@@ -313,7 +313,7 @@ def solve_block_tridiagonal(diag, lower, rhs, dinv, y, z):
             z[b, i] = t
 
 
-@njit(cache=True)
+@njit(cache=True, inline="always")
 def align_frames(node_pos, seg_inv_inertia, seg_quat):
     """Parallel-transport each free segment frame so that d3 points along its edge (minimal rotation).
 
@@ -347,7 +347,7 @@ def align_frames(node_pos, seg_inv_inertia, seg_quat):
         quat_turn_into(seg_quat[j], theta, seg_quat[j])
 
 
-@njit(cache=True)
+@njit(cache=True, inline="always")
 def _relative_rotation_vector(q, q0, out):
     """Write the rotation vector (rad, world) of ``q conj(q0)`` into ``out`` (3,), the short way."""
     w = q[0] * q0[0] + q[1] * q0[1] + q[2] * q0[2] + q[3] * q0[3]
@@ -364,7 +364,7 @@ def _relative_rotation_vector(q, q0, out):
     out[0], out[1], out[2] = x * f, y * f, z * f
 
 
-@njit(cache=True)
+@njit(cache=True, inline="always")
 def assemble_rod_system(node_pos, seg_quat, rod, needle, start, frames, contacts, system, lam, needle_pos, needle_quat,
                         dt):  # fmt: skip
     """Linearise all rod constraints at the current configuration into the block-tridiagonal XPBD system.
@@ -399,7 +399,7 @@ def assemble_rod_system(node_pos, seg_quat, rod, needle, start, frames, contacts
     return _contact_rows(rod, needle[0], contacts, system, lam, residual)
 
 
-@njit(cache=True)
+@njit(cache=True, inline="always")
 def _frame_blocks(seg_quat, seg_inv_inertia, start, frames, lam, residual):
     """Frame Jacobians (``seg_rot``, ``seg_s``, ``bend_b``), inverse "mass" ``W_j`` and Newton residual
     ``h_j = W_j (I_j dtheta_j - (J_theta^T lambda)_j)`` of every segment frame; returns ``residual`` raised to
@@ -442,7 +442,7 @@ def _frame_blocks(seg_quat, seg_inv_inertia, start, frames, lam, residual):
     return residual
 
 
-@njit(cache=True)
+@njit(cache=True, inline="always")
 def _attachment_block(node_pos, rod, needle, frames, system, needle_pos, needle_quat, residual):
     """Block 0: the attachment of node 0 to the needle swage (rows 0-2; identity rows without a needle) and the
     unused rows 3-5. Writes ``att_r``, ``att_winv``; returns ``residual`` raised to the attachment's."""
@@ -476,7 +476,7 @@ def _attachment_block(node_pos, rod, needle, frames, system, needle_pos, needle_
     return residual
 
 
-@njit(cache=True)
+@njit(cache=True, inline="always")
 def _segment_blocks(node_pos, seg_quat, rod, has_needle, frames, system, lam, dt, residual):
     """Blocks 1..N-1: the stretch-shear rows of segment j and the bend-twist rows of segments j, j+1 in block
     j+1, and their coupling with block j through ``x_j`` (and ``q_j``); returns ``residual`` raised to theirs."""
@@ -536,7 +536,7 @@ def _segment_blocks(node_pos, seg_quat, rod, has_needle, frames, system, lam, dt
     return residual
 
 
-@njit(cache=True)
+@njit(cache=True, inline="always")
 def _bend_rows(j, seg_quat, bend_compliance, frames, diag, rhs, lam, inv_dt2, tmp, residual):
     """The bend-twist rows of segments j, j+1 in block j+1 (``tmp`` holds ``[d3_j]x W_j``); returns
     ``residual`` raised to theirs."""
@@ -565,7 +565,7 @@ def _bend_rows(j, seg_quat, bend_compliance, frames, diag, rhs, lam, inv_dt2, tm
     return residual
 
 
-@njit(cache=True)
+@njit(cache=True, inline="always")
 def _contact_rows(rod, has_needle, contacts, system, lam, residual):
     """Row 6 of block i, ``C = gap_i + n_i . (x - x_i)``, coupled to the stretch-shear (or attachment) rows
     through ``x_i``: node i's one-sided contact (``C >= 0``), active while it penetrates or already pushes; or,
@@ -644,7 +644,7 @@ def fix_contact_step(i, step, contact_active, diag, lower, rhs):
     rhs[i, 6] = step
 
 
-@njit(cache=True)
+@njit(cache=True, inline="always")
 def apply_rod_solution(rod, needle, frames, contacts, z, lam, node_pos, seg_quat, needle_pos, needle_quat):
     """Apply multiplier steps ``z`` (N, 7): ``dx = M^-1 J^T z`` to nodes, ``dtheta = W J^T z - h`` to frames
     (exact exponential map), and the attachment impulse ``-z[0, :3]`` to the needle (rigid XPBD).

@@ -145,7 +145,7 @@ def stable_neo_hookean_stress(f: np.ndarray, mu: float, lam: float, p_out: np.nd
     return _stress(f, mu, lam, np.empty((3, 3)), p_out)
 
 
-@njit(cache=True)
+@njit(cache=True, inline="always")
 def stable_neo_hookean_tangent(f: np.ndarray, mu: float, lam: float, c_out: np.ndarray) -> None:
     """Second derivative ``c_out[i, j, k, l] = d2Psi / dF_ij dF_kl`` (3, 3, 3, 3), Pa (not projected)."""
     gamma = 1.0 + mu / lam
@@ -168,7 +168,7 @@ def stable_neo_hookean_tangent(f: np.ndarray, mu: float, lam: float, c_out: np.n
                     c_out[i, j, k, m] = value
 
 
-@njit(cache=True)
+@njit(cache=True, inline="always")
 def tet_stiffness(x: np.ndarray, dm_inv: np.ndarray, volume: float, mu: float, lam: float, k_out: np.ndarray) -> None:
     """Element Hessian ``d2 (V0 Psi) / dx dx`` of one tet, ``k_out`` (12, 12) in N/m, row ``3 k + a`` = node
     ``k``, axis ``a``; ``x`` (4, 3) node positions, m; ``dm_inv`` (3, 3) 1/m; ``volume`` m^3; moduli Pa."""

@@ -48,7 +48,7 @@ def node_path_constraint(q, p, t):
     return True, c, n
 
 
-@njit(cache=True)
+@njit(cache=True, inline="always")
 def node_access_constraint(pa, pb, b, rest_length):
     """Node-access constraint of paper eq. 3: ``C = |b - pa| + |b - pb| - l``.
 
@@ -106,7 +106,7 @@ def tissue_point(tissue_q, idx, weight):
     return p
 
 
-@njit(cache=True)
+@njit(cache=True, inline="always")
 def _vertex_normal(v, tri_vertices, vertex_tri_start, vertex_tri_index, tissue_q):
     """Area-weighted normal (3,) of surface vertex ``v`` (sum of the cross products of its triangles, not unit)."""
     n = np.zeros(3)

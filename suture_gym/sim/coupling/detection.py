@@ -100,7 +100,7 @@ def build_access_rows(sigma, paths, access):
     return n_access
 
 
-@njit(cache=True)
+@njit(cache=True, inline="always")
 def _path_row(i, q, first, count, is_open, pathnodes, tet_indices, rows):
     """Node-path row (eq. 1) of strand node ``i`` at ``q`` (3,) m on the path with path-node slots
     ``first .. first + count - 1``: the tangent and the eight tissue vertices and weights of the projection
@@ -123,7 +123,7 @@ def _path_row(i, q, first, count, is_open, pathnodes, tet_indices, rows):
         row_weight[i, 4 + a] = u * pathnode_bary[slot + 1, a]
 
 
-@njit(cache=True)
+@njit(cache=True, inline="always")
 def _in_access_piece(i, n_access, access_node, access_weight):
     """Strand node ``i`` carries weight in one of the first ``n_access`` node-access rows."""
     for a in range(n_access):

@@ -31,7 +31,7 @@ from suture_gym.sim.rigid import (
 )
 
 
-@njit(cache=True)
+@njit(cache=True, inline="always")
 def _project_contact(
     needle_inv_mass,
     needle_inv_inertia_body,
@@ -69,7 +69,7 @@ def _project_contact(
     if is_diagonal(tissue):
         w += bary[0] ** 2 * tissue_w[i0] + bary[1] ** 2 * tissue_w[i1] + bary[2] ** 2 * tissue_w[i2]
     else:
-        w += point_inv_mass(tissue, tri_vertices[tri], bary, 3, normal)
+        w += point_inv_mass(tissue, tri_vertices[tri], bary, bary.shape[0], normal)
     dlam = xpbd_delta_lambda(c, w, 0.0, lam)
     if lam + dlam < 0.0:
         dlam = -lam
@@ -79,11 +79,11 @@ def _project_contact(
             vi = tri_vertices[tri, k]
             tissue_q[vi] -= tissue_w[vi] * bary[k] * dlam * normal
     else:
-        apply_impulse(tissue, tri_vertices[tri], bary, 3, dlam * normal, tissue_q)
+        apply_impulse(tissue, tri_vertices[tri], bary, bary.shape[0], dlam * normal, tissue_q)
     return lam + dlam
 
 
-@njit(cache=True)
+@njit(cache=True, inline="always")
 def _anchor_point(tri, bary, tri_vertices, tissue_q, tissue, patch):
     """The tissue point ``p`` (3,) m an anchor row holds the tip against and its generalised inverse mass
     ``(3, 3)`` (1/kg): ``sum_k c_k^2 w_k I`` with the diagonal compliance, the point's compliance block
@@ -102,7 +102,7 @@ def _anchor_point(tri, bary, tri_vertices, tissue_q, tissue, patch):
             for a in range(3):
                 k_tissue[a, a] = w_tissue
         else:
-            point_compliance(tissue, tri_vertices[tri], bary, 3, k_tissue)
+            point_compliance(tissue, tri_vertices[tri], bary, bary.shape[0], k_tissue)
         return p, k_tissue
     p = offset.copy()
     w_tissue = 0.0
@@ -117,7 +117,7 @@ def _anchor_point(tri, bary, tri_vertices, tissue_q, tissue, patch):
     return p, k_tissue
 
 
-@njit(cache=True)
+@njit(cache=True, inline="always")
 def _project_anchor(
     needle_inv_mass,
     needle_inv_inertia_body,
@@ -208,7 +208,7 @@ def _project_anchor(
     tissue_inv_mass = tissue[0]
     if not is_diagonal(tissue):
         if count == 0:
-            apply_impulse(tissue, tri_vertices[tri], bary, 3, impulse, tissue_q)
+            apply_impulse(tissue, tri_vertices[tri], bary, bary.shape[0], impulse, tissue_q)
         else:
             apply_impulse(tissue, vertex, weight, count, impulse, tissue_q)
     elif count == 0:
@@ -275,7 +275,7 @@ def project_needle_rows(needle, tissue, coefficients, rows, tip_friction_out, ne
         project_cutting(needle, tissue, dt, rows[11], needle_pos, needle_quat, tissue_q)
 
 
-@njit(cache=True)
+@njit(cache=True, inline="always")
 def project_cutting(needle, tissue, dt, cut, needle_pos, needle_quat, tissue_q):
     """The tip's cutting row (Okamura et al. 2004: a constant cutting force while the tip advances): the tip's
     advance along its direction ``t`` relative to the tissue point ``p`` since the start of the substep,
@@ -311,7 +311,7 @@ def project_cutting(needle, tissue, dt, cut, needle_pos, needle_quat, tissue_q):
     move_point(compliance, idx, wt, dlam, t, tissue_q)
 
 
-@njit(cache=True)
+@njit(cache=True, inline="always")
 def _project_path_row(i, needle, compliance, coefficients, rows, needle_pos, needle_quat, tissue_q):
     """Needle node ``i``'s node-path row (eq. 1, :func:`node_path_constraint`), rigid and two-way, its
     multiplier kept above ``-tear_force dt^2``. Arguments as :func:`project_needle_rows`."""
@@ -333,7 +333,7 @@ def _project_path_row(i, needle, compliance, coefficients, rows, needle_pos, nee
         move_point(compliance, idx, wt, dlam, n, tissue_q)
 
 
-@njit(cache=True)
+@njit(cache=True, inline="always")
 def _project_axial_friction(i, needle, tissue, coefficients, rows, needle_pos, needle_quat, tissue_q):
     """Kinetic axial friction of needle node ``i`` on its path: the relative displacement of node and path point
     along the tangent since the start of the substep is removed up to a multiplier of ``strand_friction[i] dt^2``

@@ -73,7 +73,7 @@ def path_node_kinematics(
                 out_tangent[s] = 0.0
 
 
-@njit(cache=True)
+@njit(cache=True, inline="always")
 def project_onto_path(q, first, count, pathnode_q, pathnode_tangent, is_open):
     """Where strand node ``q`` (3,) meets its path's polyline: the closest point over the path's segments.
 

@@ -81,7 +81,7 @@ def embedded_inv_mass(needle_node_count, node_rows, access_rows, access_count, t
         i = nn + j - 1
         if row_kind[i] != ROW_PATH:
             continue
-        w = _isotropic_inv_mass(tissue, row_tissue[i], row_weight[i], PATH_ROW_VERTICES)
+        w = _isotropic_inv_mass(tissue, row_tissue[i], row_weight[i], row_tissue.shape[1])
         if w > 0.0 and w < out_w[j]:
             out_w[j] = w
             d = strand_q[min(i + 1, strand_q.shape[0] - 1)] - strand_q[i - 1]
@@ -90,7 +90,7 @@ def embedded_inv_mass(needle_node_count, node_rows, access_rows, access_count, t
                 out_a[j] = suture_inv_mass[j] - w
                 out_t[j] = row_tangent[i]
     for a in range(access_count):
-        w = _isotropic_inv_mass(tissue, tri_vertices[access_tri[a]], access_bary[a], 3)
+        w = _isotropic_inv_mass(tissue, tri_vertices[access_tri[a]], access_bary[a], access_bary.shape[1])
         if w <= 0.0:
             continue
         for e in range(4):
@@ -171,7 +171,7 @@ def project_suture_path_rows(
             for a in range(PATH_ROW_VERTICES):
                 w += wt[a] * wt[a] * tissue_inv_mass[idx[a]]
         else:
-            w += point_inv_mass(tissue, idx, wt, PATH_ROW_VERTICES, n)
+            w += point_inv_mass(tissue, idx, wt, idx.shape[0], n)
         dlam = xpbd_delta_lambda(c, w, 0.0, row_lambda[i])
         dlam = max(row_lambda[i] + dlam, -force_cap) - row_lambda[i]
         row_lambda[i] += dlam
@@ -221,7 +221,7 @@ def suture_contact_rows(needle_node_count, eps, contact_rows, tri_vertices, tiss
             for v in range(3):
                 out_tissue_w[j] += b[v] * b[v] * tissue[0][tri_vertices[tri, v]]
         else:
-            out_tissue_w[j] = point_inv_mass(tissue, tri_vertices[tri], b, 3, row_contact_normal[i])
+            out_tissue_w[j] = point_inv_mass(tissue, tri_vertices[tri], b, b.shape[0], row_contact_normal[i])
 
 
 @njit(cache=True)
@@ -293,7 +293,7 @@ def suture_friction_rows(needle_node_count, friction_rows, tissue_q, tissue, sut
             for a in range(PATH_ROW_VERTICES):
                 out_tissue_w[j] += wt[a] * wt[a] * tissue[0][idx[a]]
         else:
-            out_tissue_w[j] = point_inv_mass(tissue, idx, wt, PATH_ROW_VERTICES, t)
+            out_tissue_w[j] = point_inv_mass(tissue, idx, wt, idx.shape[0], t)
         out_cap[j] = strand_friction[i] * dt * dt
 
 
@@ -314,7 +314,7 @@ def apply_friction_reaction(needle_node_count, friction_rows, contact_cap, conta
         move_point(tissue, row_tissue[i], row_weight[i], dlam, contact_normal[j], tissue_q)
 
 
-@njit(cache=True)
+@njit(cache=True, inline="always")
 def _strand_point(node, needle_node_count, needle_pos, needle_quat, needle_node_body, suture_q):
     """World position (3,) of strand node ``node`` (needle node from the pose, or suture node)."""
     if node < needle_node_count:
@@ -368,7 +368,7 @@ def project_access_rows(access, access_count, needle, suture_mass, tissue, tri_v
         if is_diagonal(tissue):
             w = w_tissue_scale * (gs @ gs)
         else:
-            w = point_inv_mass(tissue, tri_vertices[tri], access_bary[a], 3, gs)
+            w = point_inv_mass(tissue, tri_vertices[tri], access_bary[a], access_bary.shape[1], gs)
         for e in range(4):
             node = access_node[a, e]
             g = access_weight[a, e] * (ga if e < 2 else gb)
@@ -395,4 +395,4 @@ def project_access_rows(access, access_count, needle, suture_mass, tissue, tri_v
                 vi = tri_vertices[tri, v]
                 tissue_q[vi] -= tissue[0][vi] * access_bary[a, v] * dlam * gs
         else:
-            apply_impulse(tissue, tri_vertices[tri], access_bary[a], 3, dlam * gs, tissue_q)
+            apply_impulse(tissue, tri_vertices[tri], access_bary[a], access_bary.shape[1], dlam * gs, tissue_q)
