@@ -182,7 +182,8 @@ def build_node_rows(sigma, strand_q, sdist, strand_tri, row_band, paths, pathnod
             continue
         if strand_tri[i] < 0 or not (sdist[i] < row_band) or _in_access_piece(i, n_access, access[0], access[1]):
             continue
-        if i >= suture_skip[0] and (suture_skip[1][strand_tri[i]] or (sdist[i] < 0.0 and suture_skip[2][strand_tri[i]])):
+        tri = strand_tri[i]
+        if i >= suture_skip[0] and (suture_skip[1][tri] or (sdist[i] < 0.0 and suture_skip[2][tri])):
             continue
         row_kind[i] = ROW_TRIANGLE
         row_tri[i] = strand_tri[i]
