@@ -38,7 +38,14 @@ configure(threads=1)
 import gymnasium as gym  # noqa: E402
 
 import suture_gym  # noqa: E402, F401  (registers the ids)
-from agents.evaluation import evaluate, make_policy, run_config, trained_env_kwargs  # noqa: E402
+from agents.evaluation import (  # noqa: E402
+    SCRIPTED,
+    evaluate,
+    make_policy,
+    model_vecnormalize,
+    run_config,
+    trained_env_kwargs,
+)
 from agents.training import train  # noqa: E402
 from suture_gym.render import write_video  # noqa: E402
 
@@ -50,10 +57,11 @@ VIDEO_EVERY = 8
 
 
 def record_policy_video(env_id: str, policy: str, path: Path, seed: int) -> dict:
-    """Film one episode of ``policy`` (``random``, ``expert`` or a model ``.zip``) on ``env_id``, env seed
-    ``seed``, into ``path`` (real time). Returns ``{path, frames, steps, success, return}``."""
+    """Film one episode of ``policy`` (``random``, ``expert`` or a model ``.zip``, with the statistics saved beside
+    it) on ``env_id``, env seed ``seed``, into ``path`` (real time). Returns ``{path, frames, steps, success,
+    return}``."""
     env = gym.make(env_id, render_mode="rgb_array", **trained_env_kwargs(policy))
-    act = make_policy(policy, env, seed)
+    act = make_policy(policy, env, seed, None if policy in SCRIPTED else model_vecnormalize(policy))
     summary = {"steps": 0, "success": False, "return": 0.0}
 
     def frames():

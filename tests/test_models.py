@@ -39,3 +39,18 @@ def test_committed_model_runs_with_its_statistics(path):
         if terminated or truncated:
             break
     env.close()
+
+
+def test_main_job_films_a_committed_model_with_its_statistics(tmp_path, monkeypatch):
+    """``make run``'s video of a saved model acts on normalised observations, as the evaluation does (on raw
+    ones the committed NeedleInsert model fails every episode)."""
+    import importlib
+
+    pytest.importorskip("imageio_ffmpeg")
+    for var in ("NUMBA_NUM_THREADS", "OMP_NUM_THREADS", "OPENBLAS_NUM_THREADS", "MKL_NUM_THREADS"):
+        monkeypatch.setenv(var, "1")  # the script's configure() sets them; restored after the test
+    monkeypatch.syspath_prepend(str(Path(__file__).resolve().parents[1] / "scripts"))
+    main_job = importlib.import_module("main_job")
+    model = next(path for path in MODELS if run_config(path)["env_id"] == main_job.ENV_ID)
+    video = main_job.record_policy_video(main_job.ENV_ID, str(model), tmp_path / "policy.mp4", seed=10_000)
+    assert video["success"] and video["frames"] > 1 and (tmp_path / "policy.mp4").stat().st_size > 0
