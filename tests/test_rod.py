@@ -23,6 +23,7 @@ from suture_gym.sim.rod import (
 )
 from suture_gym.sim.rod_solver import (
     BLOCK,
+    COUPLING_PATTERN,
     align_frames,
     assemble_rod_system,
     bend_twist_constraint,
@@ -141,19 +142,17 @@ def test_align_frames_puts_d3_on_the_edges_and_keeps_twist():
 
 
 def test_block_tridiagonal_solve_matches_dense():
+    """A symmetric positive definite block-tridiagonal system whose coupling blocks fill the rod's pattern."""
     nb, k = 9, BLOCK
     dense = np.zeros((nb * k, nb * k))
-    m = RNG.normal(size=(nb * k, nb * k))
-    for i in range(nb * k):
-        for j in range(nb * k):
-            if abs(i // k - j // k) > 1:
-                m[i, j] = 0.0
-    dense = m @ m.T + np.eye(nb * k)
-    for i in range(nb * k):
-        for j in range(nb * k):
-            if abs(i // k - j // k) > 1:
-                dense[i, j] = 0.0
-    dense += nb * k * np.eye(nb * k)  # keep it positive definite after the trim
+    for b in range(nb):
+        m = RNG.normal(size=(k, k))
+        dense[b * k : (b + 1) * k, b * k : (b + 1) * k] = m @ m.T + 3.0 * k * np.eye(k)
+        if b:
+            low = RNG.normal(size=(k, k)) * COUPLING_PATTERN
+            dense[b * k : (b + 1) * k, (b - 1) * k : b * k] = low
+            dense[(b - 1) * k : b * k, b * k : (b + 1) * k] = low.T
+    assert np.all(np.linalg.eigvalsh(dense) > 0.0)
     diag = np.array([dense[b * k : (b + 1) * k, b * k : (b + 1) * k] for b in range(nb)])
     lower = np.zeros_like(diag)
     for b in range(1, nb):
@@ -279,6 +278,9 @@ def test_assembled_system_matches_dense_finite_difference_jacobians(anisotropic)
     np.testing.assert_allclose(work.rhs.ravel()[used], rhs_ref[used], atol=1e-9 * np.abs(rhs_ref).max())
     unused = ~used
     np.testing.assert_array_equal(work.rhs.ravel()[unused], 0.0)
+    # the block solve skips the coupling entries outside the pattern: the assembly must leave them zero
+    np.testing.assert_array_equal(work.lower[1:, ~COUPLING_PATTERN], 0.0)
+    assert work.lower[1:, COUPLING_PATTERN].any(axis=0).sum() > 20  # the pattern is used, not just allowed
 
 
 # ---------------------------------------------------------------------------------------------------------
