@@ -5,6 +5,7 @@ Usage::
     python scripts/evaluate.py --env SutureGym/NeedleInsert-v2 --policy random --episodes 20 --json
     python scripts/evaluate.py --env SutureGym/NeedleInsert-v2 --policy runs/ppo_NeedleInsert_s0/best_model.zip
     python scripts/evaluate.py --policy elsewhere/model.zip --vecnormalize elsewhere/vecnormalize.pkl
+    python scripts/evaluate.py --env SutureGym/WoundClosure-v2 --policy expert --episodes 100 --workers 2
 
 A saved model is evaluated with the VecNormalize statistics saved beside it (``final_vecnormalize.pkl``, or a
 checkpoint's ``model_vecnormalize_<N>_steps.pkl``) unless ``--vecnormalize`` names others; when there are none
@@ -39,6 +40,8 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--vecnormalize", default=None, metavar="PATH",
                         help="VecNormalize statistics (.pkl) of a saved model (default: those saved beside it; "
                              "a warning when there are none)")
+    parser.add_argument("--workers", type=int, default=1,
+                        help="processes to run the episodes on (the same summary; one per free core)")
     parser.add_argument("--json", action="store_true", help="print JSON")
     parser.add_argument("--per-episode", action="store_true", help="include per-episode records")
     parser.add_argument("--records", default=None,
@@ -46,12 +49,15 @@ def main(argv: list[str] | None = None) -> int:
     args = parser.parse_args(argv)
     if args.episodes <= 0:
         parser.error(f"--episodes must be positive, got {args.episodes}")
+    if args.workers < 1:
+        parser.error(f"--workers must be at least 1, got {args.workers}")
 
     env_kwargs = {"config": args.config} if args.config is not None else None
     if args.vecnormalize is not None and args.policy in SCRIPTED:
         parser.error(f"--vecnormalize applies to a saved model, not to --policy {args.policy}")
     summary = evaluate(args.env, args.policy, args.episodes, seed=args.seed, env_kwargs=env_kwargs,
-                       progress=not args.json, records_path=args.records, vecnormalize=args.vecnormalize)
+                       progress=not args.json, records_path=args.records, vecnormalize=args.vecnormalize,
+                       workers=args.workers)
     if not args.per_episode:
         summary.pop("per_episode")
     if args.json:
