@@ -411,8 +411,11 @@ def assemble_rod_system(node_pos, seg_quat, rod, needle, start, frames, contacts
     Frame "mass": the frames are nearly massless, so their block uses inertia plus the geometric stiffness of
     the stretch-shear rows, ``|lambda_ss| (I - d3 d3^T)`` (a bound on the lambda-weighted Hessian of
     ``-d3(theta)``; the previous substep's value stands in while this substep's multipliers build up), and
+    about ``d3`` that of the bend-twist rows on either side, ``(|lambda_bt,j| + |lambda_bt,j+1|) / 4``, and
     keeps their Newton residual ``h = W (I dtheta - J_theta^T lambda)`` in the right-hand side, so the
-    stiffness shapes the steps but not the solution. Without it Newton steps on the frames diverge under load.
+    stiffness shapes the steps but not the solution. Without it Newton steps on the frames diverge under load;
+    without the twist term a thread held in the tissue's paths creeps along its twist (its frames' inertia about
+    ``d3`` is ~1e-15 kg m^2), its ``|h|`` shrinking 3% an iteration, and the solve never reaches its tolerance.
 
     Returns the largest residual before the solve, dimensionless: ``|C + alpha~ lambda|`` (strain for
     stretch-shear, half-angle for bend-twist, gap / segment length for attachment and contacts) and
@@ -458,7 +461,14 @@ def _frame_blocks(seg_quat, seg_inv_inertia, start, frames, lam, residual):
             inertia[i] = 1.0 / seg_inv_inertia[j, i]
         winv_mod[0] = 1.0 / (inertia[0] + stiff)
         winv_mod[1] = 1.0 / (inertia[1] + stiff)
-        winv_mod[2] = seg_inv_inertia[j, 2]
+        # twist: the bend-twist rows on either side, |lambda_bt| / 4 each (a row-sum bound on their lambda-weighted
+        # Hessian: d^2 Im(conj(q0) q1) / dtheta^2 is -C/4 on a frame and at most 1/4 across the two frames)
+        twist_stiff = 0.0
+        if j >= 1:
+            twist_stiff += 0.25 * np.sqrt(lam[j, 3] ** 2 + lam[j, 4] ** 2 + lam[j, 5] ** 2)
+        if j < nseg - 1:
+            twist_stiff += 0.25 * np.sqrt(lam[j + 1, 3] ** 2 + lam[j + 1, 4] ** 2 + lam[j + 1, 5] ** 2)
+        winv_mod[2] = 1.0 / (inertia[2] + twist_stiff)
         _rot_diag_into(rj, winv_mod, 1.0, seg_winv[j])
         _rot_diag_into(rj, inertia, 1.0, tmp)
         _relative_rotation_vector(seg_quat[j], seg_quat_start[j], dth)
