@@ -788,7 +788,12 @@ class ImplicitTissue:
 
     def _solve_columns(self, particles: np.ndarray) -> None:
         """Make sure the columns of ``A0^-1`` of each particle's x, y, z dofs (zero for a held dof) are in the
-        column store (one batched solve for the missing ones; the store doubles when full)."""
+        column store (the store doubles when full).
+
+        Each particle's three columns are solved on their own: a column solved in a batch with others rounds
+        differently (by ~1e-16 relative) from the same column alone, so batching the missing particles of each
+        substep would make the store, and every later trajectory, depend on the order the episodes before it first
+        touched the particles (an env reset with the same seed would not replay the same episode)."""
         missing = particles[self._column_of[particles] < 0]
         if missing.size == 0:
             return
@@ -797,14 +802,14 @@ class ImplicitTissue:
             grown = np.zeros((self.free_index.size, max(2 * self._column_store.shape[1], 3 * (start + missing.size))))
             grown[:, : 3 * start] = self._column_store[:, : 3 * start]
             self._column_store = grown
-        dofs = (3 * missing[:, None] + np.arange(3)).ravel()
-        position = self._free_position[dofs]
-        rhs = np.zeros((self.free_index.size, dofs.size))
-        free = np.flatnonzero(position >= 0)
-        rhs[position[free], free] = 1.0
-        solved = self.factor.solve(rhs)
-        solved[:, position < 0] = 0.0
-        self._column_store[:, 3 * start : 3 * (start + missing.size)] = solved
+        for k, particle in enumerate(missing):
+            position = self._free_position[3 * particle : 3 * particle + 3]
+            rhs = np.zeros((self.free_index.size, 3))
+            free = np.flatnonzero(position >= 0)
+            rhs[position[free], free] = 1.0
+            solved = self.factor.solve(rhs)
+            solved[:, position < 0] = 0.0
+            self._column_store[:, 3 * (start + k) : 3 * (start + k + 1)] = solved
         self._column_of[missing] = np.arange(start, start + missing.size)
         self._column_count = start + missing.size
 
