@@ -19,6 +19,10 @@ whose needle has stopped moving ends early (:data:`STALL_DISTANCE`) and counts a
 demonstrations and every later iteration is the learner alone: its episodes are then an evaluation of the
 policy fitted one iteration before, on env seeds no other iteration uses, and they are the run's learning curve.
 
+The rollouts may run on several processes (``workers``), each with its own env and oracle, given the learner's
+weights and statistics at every iteration; the refit stays in the calling process, and the run is the same for any
+number of workers (:func:`train_dagger`).
+
 The learner is an SB3 :class:`~stable_baselines3.PPO` model (``MlpPolicy``), saved like every other run of
 :func:`agents.training.train` (``final_model.zip``, ``final_vecnormalize.pkl``, ``checkpoints/``,
 ``eval/evaluations.npz``, ``learning_curve.png``, ``summary.json``), so ``scripts/evaluate.py`` and PPO's
@@ -33,6 +37,7 @@ from __future__ import annotations
 
 import json
 import math
+import pickle
 import shutil
 import sys
 import time
@@ -86,7 +91,7 @@ def dagger_settings(value: Any) -> dict[str, Any]:
 
 
 def train_dagger(env_id: str, seed: int, run_dir: Path, total: int, script: dict[str, Any], kwargs: dict[str, Any],
-                 progress_bar: bool = True, verbose: int = 0) -> dict[str, Any]:
+                 progress_bar: bool = True, verbose: int = 0, workers: int = 1) -> dict[str, Any]:
     """Run DAgger on ``env_id`` into ``run_dir`` (see the module docstring); returns the run's summary.
 
     Args:
@@ -101,6 +106,9 @@ def train_dagger(env_id: str, seed: int, run_dir: Path, total: int, script: dict
             would use).
         progress_bar: a tqdm bar over env steps on stderr.
         verbose: 1 prints one line per iteration on stderr.
+        workers: processes the rollouts run on (each with its own env and oracle, given the learner's weights
+            and statistics at every iteration); the refit stays in this process. The run is the same for any
+            number: episode ``k``'s env seed and executed-action draws depend on ``seed`` and ``k`` alone.
 
     Returns:
         ``{timesteps, wall_s, iterations: [{iteration, beta, episodes, steps, success_rate, mean_return,
@@ -112,12 +120,14 @@ def train_dagger(env_id: str, seed: int, run_dir: Path, total: int, script: dict
     from stable_baselines3 import PPO
     from stable_baselines3.common.vec_env import DummyVecEnv, VecNormalize
 
-    import suture_gym  # noqa: F401  (registers the ids)
-    from agents.expert import FeedbackExpert
     from agents.imitation import behaviour_clone
 
     settings = dagger_settings(script.get("dagger", {}))
-    env = gym.make(env_id, **script.get("env_kwargs", {}))
+    if isinstance(workers, bool) or not isinstance(workers, int) or workers < 1:
+        raise ValueError(f"workers must be an integer >= 1, got {workers!r}")
+    env_kwargs = script.get("env_kwargs", {})
+    rollouts = _Rollouts(env_id, env_kwargs, settings)
+    env = rollouts.env
     if not isinstance(env.observation_space, gym.spaces.Box):
         raise ValueError(f"DAgger needs flat (Box) observations, {env_id} has {env.observation_space}")
     normalize = script.get("normalize", False)
@@ -127,8 +137,14 @@ def train_dagger(env_id: str, seed: int, run_dir: Path, total: int, script: dict
         vec_env = VecNormalize(vec_env, **norm_kwargs)
         vec_env.training = False  # its statistics are updated with each iteration's data below, not by stepping
     model = PPO(script["policy"], vec_env, seed=seed, device="cpu", verbose=0, **kwargs)
-    oracle = FeedbackExpert(env, lead=settings["lead"], gain=settings["gain"])
-    rng = np.random.default_rng(seed)
+    pool = None
+    if workers > 1:
+        import multiprocessing
+        from concurrent.futures import ProcessPoolExecutor
+
+        pool = ProcessPoolExecutor(workers, mp_context=multiprocessing.get_context("spawn"),
+                                   initializer=_start_worker,
+                                   initargs=(env_id, env_kwargs, settings, script["policy"], kwargs))  # fmt: skip
 
     columns: dict[str, list] = {"observations": [], "actions": [], "rewards": []}
     starts: list[int] = []
@@ -141,63 +157,61 @@ def train_dagger(env_id: str, seed: int, run_dir: Path, total: int, script: dict
 
         bar = tqdm(total=total, desc=f"dagger {env_id}", unit="step", file=sys.stderr)
     t0 = time.perf_counter()
-    for iteration in range(settings["iterations"]):
-        if steps >= total:
-            break
-        beta = settings["beta"] * settings["beta_decay"] ** iteration if iteration else settings["beta"]
-        returns, lengths, successes, seeds, stalls = [], [], [], [], 0
-        for _ in range(settings["episodes_per_iteration"]):
-            env_seed = SEED_BASE + 10_000 * seed + episode
-            obs, _ = env.reset(seed=env_seed)
-            oracle.reset()
-            starts.append(len(columns["actions"]))
-            total_reward, length, done, info = 0.0, 0, False, {}
-            tips = [env.unwrapped.sim.tip_position()]
-            while not done:
-                label = oracle(obs)
-                action = label if rng.random() < beta else _act(model, vec_env, obs)
-                columns["observations"].append(np.asarray(obs, dtype=np.float32))
-                columns["actions"].append(label)
-                obs, reward, terminated, truncated, info = env.step(action)
-                columns["rewards"].append(float(reward))
-                total_reward += float(reward)
-                length += 1
-                tips.append(env.unwrapped.sim.tip_position())
-                stalled = len(tips) > settings["stall_steps"] and np.linalg.norm(
-                    tips[-1] - tips[-1 - settings["stall_steps"]]) < STALL_DISTANCE
-                done = terminated or truncated or stalled
-            steps += length
-            episode += 1
-            stalls += int(stalled)
-            if bar is not None:
-                bar.update(length)
-            returns.append(total_reward)
-            lengths.append(length)
-            successes.append(bool(info.get("is_success", False)))
-            seeds.append(env_seed)
-        demos = {"observations": np.asarray(columns["observations"]), "actions": np.asarray(columns["actions"]),
-                 "rewards": np.asarray(columns["rewards"]), "episode_starts": np.asarray(starts)}
-        if normalize:  # the statistics of all the data so far: the expert's states and the learner's
-            vec_env.obs_rms.update(demos["observations"][starts[-len(returns)]:])
-        fit = behaviour_clone(model, demos, epochs=settings["epochs"], batch_size=settings["batch_size"],
-                              learning_rate=settings["learning_rate"], seed=seed + iteration,
-                              update_statistics=False)
-        model.save(run_dir / "checkpoints" / f"model_{steps}_steps.zip")
-        if normalize:
-            vec_env.save(str(run_dir / "checkpoints" / f"model_vecnormalize_{steps}_steps.pkl"))
-        record = {"iteration": iteration, "beta": beta, "episodes": len(returns), "steps": int(sum(lengths)),
-                  "success_rate": float(np.mean(successes)), "mean_return": float(np.mean(returns)),
-                  "stalled_episodes": stalls, "data_steps": fit["steps"], "action_mse": fit["action_mse"],
-                  "env_seeds": seeds,
-                  "checkpoint_steps": steps}
-        history.append(record)
-        if beta == 0.0:  # the learner alone: an evaluation of the previous iteration's policy
-            curve["timesteps"].append(steps - record["steps"])
-            curve["results"].append(returns)
-            curve["ep_lengths"].append(lengths)
-            curve["successes"].append(successes)
-        if verbose:
-            print(json.dumps({k: v for k, v in record.items() if k != "env_seeds"}), file=sys.stderr)
+    try:
+        for iteration in range(settings["iterations"]):
+            if steps >= total:
+                break
+            beta = settings["beta"] * settings["beta_decay"] ** iteration if iteration else settings["beta"]
+            seeds = [SEED_BASE + 10_000 * seed + episode + k for k in range(settings["episodes_per_iteration"])]
+            draws = [(seed, episode + k) for k in range(len(seeds))]
+            if pool is None:
+                learner = lambda obs: _act(model, vec_env, obs)  # noqa: E731
+                done = _one_thread(rollouts(s, beta, d, learner) for s, d in zip(seeds, draws, strict=True))
+            else:  # the learner as it is now, for every worker
+                weights = {k: v.cpu().numpy() for k, v in model.policy.state_dict().items()}
+                normalizer = pickle.dumps(vec_env) if normalize else None
+                done = (f.result() for f in [pool.submit(_worker_rollout, s, beta, d, weights, normalizer)
+                                             for s, d in zip(seeds, draws, strict=True)])
+            returns, lengths, successes, stalls = [], [], [], 0
+            for rollout in done:
+                starts.append(len(columns["actions"]))
+                columns["observations"].extend(rollout["observations"])
+                columns["actions"].extend(rollout["labels"])
+                columns["rewards"].extend(rollout["rewards"])
+                steps += rollout["length"]
+                episode += 1
+                stalls += int(rollout["stalled"])
+                if bar is not None:
+                    bar.update(rollout["length"])
+                returns.append(rollout["return"])
+                lengths.append(rollout["length"])
+                successes.append(rollout["success"])
+            demos = {"observations": np.asarray(columns["observations"]), "actions": np.asarray(columns["actions"]),
+                     "rewards": np.asarray(columns["rewards"]), "episode_starts": np.asarray(starts)}
+            if normalize:  # the statistics of all the data so far: the expert's states and the learner's
+                vec_env.obs_rms.update(demos["observations"][starts[-len(returns)]:])
+            fit = behaviour_clone(model, demos, epochs=settings["epochs"], batch_size=settings["batch_size"],
+                                  learning_rate=settings["learning_rate"], seed=seed + iteration,
+                                  update_statistics=False)
+            model.save(run_dir / "checkpoints" / f"model_{steps}_steps.zip")
+            if normalize:
+                vec_env.save(str(run_dir / "checkpoints" / f"model_vecnormalize_{steps}_steps.pkl"))
+            record = {"iteration": iteration, "beta": beta, "episodes": len(returns), "steps": int(sum(lengths)),
+                      "success_rate": float(np.mean(successes)), "mean_return": float(np.mean(returns)),
+                      "stalled_episodes": stalls, "data_steps": fit["steps"], "action_mse": fit["action_mse"],
+                      "env_seeds": seeds,
+                      "checkpoint_steps": steps}
+            history.append(record)
+            if beta == 0.0:  # the learner alone: an evaluation of the previous iteration's policy
+                curve["timesteps"].append(steps - record["steps"])
+                curve["results"].append(returns)
+                curve["ep_lengths"].append(lengths)
+                curve["successes"].append(successes)
+            if verbose:
+                print(json.dumps({k: v for k, v in record.items() if k != "env_seeds"}), file=sys.stderr)
+    finally:
+        if pool is not None:
+            pool.shutdown(cancel_futures=True)
     if bar is not None:
         bar.close()
     wall = time.perf_counter() - t0
@@ -233,6 +247,95 @@ def _act(model, vec_env, obs: np.ndarray) -> np.ndarray:
     normalize = getattr(vec_env, "normalize_obs", None)
     action, _ = model.predict(normalize(obs) if normalize is not None else obs, deterministic=True)
     return action
+
+
+class _Rollouts:
+    """DAgger's rollouts on one env: ``rollouts(env_seed, beta, draw_seed, learner)`` runs an episode from
+    ``env.reset(seed=env_seed)`` in which each step executes the oracle's label with probability ``beta`` (draws
+    from ``np.random.default_rng(draw_seed)``) and ``learner(obs)`` otherwise, until it ends or the needle stalls
+    (:data:`STALL_DISTANCE`); returns ``{observations (L, O) float32, labels (L, A), rewards (L,), return, length,
+    success, stalled}``, the labels the oracle's at every visited observation."""
+
+    def __init__(self, env_id: str, env_kwargs: dict[str, Any], settings: dict[str, Any]):
+        import gymnasium as gym
+
+        import suture_gym  # noqa: F401  (registers the ids)
+        from agents.expert import FeedbackExpert
+
+        self.env = gym.make(env_id, **env_kwargs)
+        self.oracle = FeedbackExpert(self.env, lead=settings["lead"], gain=settings["gain"])
+        self.stall_steps = settings["stall_steps"]
+
+    def __call__(self, env_seed: int, beta: float, draw_seed, learner) -> dict[str, Any]:
+        env, oracle, stall_steps = self.env, self.oracle, self.stall_steps
+        rng = np.random.default_rng(draw_seed)
+        obs, _ = env.reset(seed=env_seed)
+        oracle.reset()
+        observations, labels, rewards = [], [], []
+        total_reward, done, stalled, info = 0.0, False, False, {}
+        tips = [env.unwrapped.sim.tip_position()]
+        while not done:
+            label = oracle(obs)
+            action = label if rng.random() < beta else learner(obs)
+            observations.append(np.asarray(obs, dtype=np.float32))
+            labels.append(label)
+            obs, reward, terminated, truncated, info = env.step(action)
+            rewards.append(float(reward))
+            total_reward += float(reward)
+            tips.append(env.unwrapped.sim.tip_position())
+            stalled = len(tips) > stall_steps and np.linalg.norm(tips[-1] - tips[-1 - stall_steps]) < STALL_DISTANCE
+            done = terminated or truncated or stalled
+        return {"observations": observations, "labels": labels, "rewards": rewards, "return": total_reward,
+                "length": len(rewards), "success": bool(info.get("is_success", False)), "stalled": bool(stalled)}
+
+
+def _one_thread(rollouts):
+    """Yield from ``rollouts`` with torch on one thread (restored between items): a matrix product's rounding
+    depends on the thread count, and the learner acts on one thread in every process, the workers' included, so a
+    run does not depend on how many processes roll out."""
+    import torch
+
+    threads = torch.get_num_threads()
+    iterator = iter(rollouts)
+    while True:
+        torch.set_num_threads(1)
+        try:
+            item = next(iterator)
+        except StopIteration:
+            return
+        finally:
+            torch.set_num_threads(threads)
+        yield item
+
+
+#: ``(rollouts, model)`` of a rollout worker process (:func:`_start_worker`): its :class:`_Rollouts` and a learner
+#: of the run's architecture whose weights each task sets.
+_WORKER: tuple | None = None
+
+
+def _start_worker(env_id: str, env_kwargs: dict[str, Any], settings: dict[str, Any], policy: str,
+                  kwargs: dict[str, Any]) -> None:
+    global _WORKER
+    import torch
+    from stable_baselines3 import PPO
+    from stable_baselines3.common.vec_env import DummyVecEnv
+
+    torch.set_num_threads(1)
+    rollouts = _Rollouts(env_id, env_kwargs, settings)
+    model = PPO(policy, DummyVecEnv([lambda: rollouts.env]), device="cpu", verbose=0, **kwargs)
+    _WORKER = (rollouts, model)
+
+
+def _worker_rollout(env_seed: int, beta: float, draw_seed, weights: dict[str, np.ndarray],
+                    normalizer: bytes | None) -> dict[str, Any]:
+    """One rollout on a worker, its learner given by ``weights`` (the policy's state dict as arrays) and
+    ``normalizer`` (the pickled ``VecNormalize`` whose statistics it acts with; None: raw observations)."""
+    import torch
+
+    rollouts, model = _WORKER
+    model.policy.load_state_dict({k: torch.as_tensor(v) for k, v in weights.items()})
+    vec_env = pickle.loads(normalizer) if normalizer is not None else None
+    return rollouts(env_seed, beta, draw_seed, lambda obs: _act(model, vec_env, obs))
 
 
 def _best_iteration(history: list[dict[str, Any]]) -> int | None:

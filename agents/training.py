@@ -110,6 +110,7 @@ def train(
     progress_bar: bool = True,
     verbose: int = 0,
     hyperparams: dict[str, Any] | None = None,
+    workers: int = 1,
 ) -> TrainResult:
     """Train ``algo`` on ``env_id`` and write the run directory described in the module docstring.
 
@@ -131,6 +132,8 @@ def train(
         progress_bar: show SB3's progress bar.
         verbose: SB3 verbosity.
         hyperparams: use this mapping instead of reading the YAML.
+        workers: DAgger only: processes its rollouts run on (the same run for any number; one per free core).
+            The other algorithms step ``n_envs`` envs, a hyperparameter of their config.
     """
     from stable_baselines3.common.callbacks import CallbackList, CheckpointCallback, EvalCallback
     from stable_baselines3.common.vec_env import VecNormalize
@@ -140,6 +143,8 @@ def train(
     total = int(n_timesteps if n_timesteps is not None else script["n_timesteps"])
     if total <= 0:
         raise ValueError(f"n_timesteps must be positive, got {total}")
+    if workers != 1 and algo != "dagger":
+        raise ValueError(f"workers applies to DAgger; {algo} steps n_envs envs (its config), got workers={workers!r}")
     n_envs = int(script.get("n_envs", 1))
     env_kwargs = script.get("env_kwargs", {})
 
@@ -152,7 +157,7 @@ def train(
             raise ValueError("a DAgger run cannot be resumed; fine-tune its model with PPO instead")
         from agents.dagger import train_dagger
 
-        summary = train_dagger(env_id, seed, run_dir, total, script, kwargs, progress_bar, verbose)
+        summary = train_dagger(env_id, seed, run_dir, total, script, kwargs, progress_bar, verbose, workers)
         (run_dir / "summary.json").write_text(json.dumps(summary, indent=2))
         return TrainResult(run_dir, run_dir / "final_model.zip", summary["timesteps"], summary["wall_s"],
                            summary["last_eval_mean_return"], summary["last_eval_success_rate"])

@@ -14,8 +14,8 @@ Steps:
 3. the learning curve -> ``<run>/learning_curve.png`` (written by the training);
 4. a video of one episode of the trained policy -> ``<run>/policy.mp4``.
 
-Budget on a 2-core laptop: DAgger's 12 iterations (about 19k env steps) take about 8 minutes, the evaluations
-and the video about 3 more. Prints one JSON summary at the end.
+DAgger's rollouts and the evaluations run on ``--workers`` processes (default 2, the same results as one); the
+refit, the video and the rest run in this process. Prints one JSON summary at the end.
 
 Usage::
 
@@ -99,14 +99,17 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--eval-freq", type=int, default=10_000,
                         help="PPO: env steps between learning-curve points")
     parser.add_argument("--out", default=str(ROOT / "runs"), help="parent directory of the run directory")
+    parser.add_argument("--workers", type=int, default=2,
+                        help="processes for DAgger's rollouts and the evaluations (the same results; one per core)")
     args = parser.parse_args(argv)
-    if (args.n_timesteps is not None and args.n_timesteps <= 0) or args.episodes <= 0:
-        parser.error("--n-timesteps and --episodes must be positive")
+    if (args.n_timesteps is not None and args.n_timesteps <= 0) or args.episodes <= 0 or args.workers <= 0:
+        parser.error("--n-timesteps, --episodes and --workers must be positive")
 
     start = time.perf_counter()
     print(f"[1/3] training {args.algo} on {ENV_ID}", flush=True)
     result = train(args.algo, ENV_ID, seed=args.seed, out_dir=args.out, n_timesteps=args.n_timesteps,
-                   eval_freq=args.eval_freq, eval_episodes=5, checkpoint_freq=args.eval_freq, progress_bar=True)
+                   eval_freq=args.eval_freq, eval_episodes=5, checkpoint_freq=args.eval_freq, progress_bar=True,
+                   workers=args.workers if args.algo == "dagger" else 1)
     print(f"[2/3] evaluating on {args.episodes} seeded episodes", flush=True)
     seed = args.seed + 10_000
     env_kwargs = trained_env_kwargs(str(result.model_path))
@@ -114,7 +117,8 @@ def main(argv: list[str] | None = None) -> int:
     policies = [("trained", str(result.model_path)),
                 *((f"committed_{path.parent.name}", str(path)) for path in committed),
                 ("expert", "expert"), ("random", "random")]
-    evaluations = {name: evaluate(ENV_ID, policy, args.episodes, seed=seed, env_kwargs=env_kwargs, progress=True)
+    evaluations = {name: evaluate(ENV_ID, policy, args.episodes, seed=seed, env_kwargs=env_kwargs, progress=True,
+                                  workers=args.workers)
                    for name, policy in policies}
     for summary in evaluations.values():
         summary.pop("per_episode")

@@ -4,6 +4,7 @@ Usage::
 
     python scripts/train.py --algo ppo --env SutureGym/NeedleInsert-v2 --seed 0
     python scripts/train.py --algo sac --env SutureGym/NeedleInsert-v2 --n-timesteps 20000
+    python scripts/train.py --algo dagger --env SutureGym/SutureThrow-v2 --workers 2   # rollouts on 2 cores
     python scripts/train.py --algo ppo --env SutureGym/NeedleInsert-v2 --from-scratch --n-timesteps 18700
     python scripts/train.py --algo ppo --env SutureGym/NeedleInsert-v2 \
         --resume runs/ppo_NeedleInsert_s0/checkpoints/model_50000_steps.zip
@@ -39,11 +40,15 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--resume", default=None, help="checkpoint .zip to continue from")
     parser.add_argument("--from-scratch", action="store_true",
                         help="leave out the config's behaviour-cloning warm start (PPO, SAC, TQC)")
+    parser.add_argument("--workers", type=int, default=1,
+                        help="DAgger: processes its rollouts run on (the same run; one per free core)")
     parser.add_argument("--no-progress", action="store_true", help="hide the progress bar")
     parser.add_argument("-v", "--verbose", type=int, default=0)
     args = parser.parse_args(argv)
     if args.n_timesteps is not None and args.n_timesteps <= 0:
         parser.error(f"--n-timesteps must be positive, got {args.n_timesteps}")
+    if args.workers < 1 or (args.workers > 1 and args.algo != "dagger"):
+        parser.error(f"--workers must be >= 1 and applies to --algo dagger only, got {args.workers} with {args.algo}")
     hyperparams = None
     if args.from_scratch:
         if args.algo == "dagger":
@@ -64,6 +69,7 @@ def main(argv: list[str] | None = None) -> int:
         progress_bar=not args.no_progress,
         verbose=args.verbose,
         hyperparams=hyperparams,
+        workers=args.workers,
     )
     print(json.dumps({"run_dir": str(result.run_dir), "model": str(result.model_path),
                       "timesteps": result.timesteps, "wall_s": round(result.wall_s, 1),

@@ -1,6 +1,8 @@
 """DAgger (agents/dagger.py) and its oracle, the feedback expert (agents/expert.py), on NeedleInsert (and
 WoundClosure for the transit between stitches)."""
 
+import json
+
 import gymnasium as gym
 import numpy as np
 import pytest
@@ -166,6 +168,36 @@ def test_dagger_run_writes_an_evaluable_model(tmp_path):
     with pytest.raises(ValueError, match="cannot be resumed"):
         train("dagger", "SutureGym/NeedleInsert-v2", out_dir=tmp_path, hyperparams=hyperparams,
               resume=run / "final_model.zip")
+
+
+def test_rollouts_on_worker_processes_give_the_same_run(tmp_path):
+    """Two rollout workers: the same episodes, labels, refits and model as one process (beta 0.5 draws the
+    executed actions, so the per-episode draws are checked too)."""
+    hyperparams = {"policy": "MlpPolicy", "n_timesteps": 5000, "normalize": True, "env_kwargs": NOMINAL,
+                   "policy_kwargs": {"net_arch": [32]},
+                   "dagger": {"iterations": 3, "episodes_per_iteration": 2, "epochs": 2, "beta": 0.5,
+                              "beta_decay": 0.5, "stall_steps": 30}}
+    runs = {}
+    import torch
+    from stable_baselines3 import PPO
+
+    for workers in (1, 2):
+        result = train("dagger", "SutureGym/NeedleInsert-v2", seed=3, out_dir=tmp_path / str(workers),
+                       progress_bar=False, hyperparams=hyperparams, workers=workers)
+        summary = json.loads((result.run_dir / "summary.json").read_text())
+        weights = PPO.load(result.run_dir / "final_model.zip", device="cpu").policy.state_dict()
+        runs[workers] = (summary["iterations"], weights)
+    assert runs[1][0] == runs[2][0]
+    assert [r["beta"] for r in runs[1][0]] == [0.5, 0.25, 0.125]
+    assert runs[1][1].keys() == runs[2][1].keys()
+    for key, value in runs[1][1].items():
+        assert torch.equal(value, runs[2][1][key]), key
+    with pytest.raises(ValueError, match="workers applies to DAgger"):
+        train("ppo", "Pendulum-v1", out_dir=tmp_path, progress_bar=False,
+              hyperparams={"policy": "MlpPolicy", "n_timesteps": 64}, workers=2)
+    with pytest.raises(ValueError, match="workers must be an integer >= 1, got 0"):
+        train("dagger", "SutureGym/NeedleInsert-v2", out_dir=tmp_path / "0", progress_bar=False,
+              hyperparams=hyperparams, workers=0)
 
 
 def test_dagger_settings_belong_to_the_dagger_config(tmp_path):
