@@ -139,12 +139,9 @@ def train_dagger(env_id: str, seed: int, run_dir: Path, total: int, script: dict
     model = PPO(script["policy"], vec_env, seed=seed, device="cpu", verbose=0, **kwargs)
     pool = None
     if workers > 1:
-        import multiprocessing
-        from concurrent.futures import ProcessPoolExecutor
+        from agents.workers import worker_pool
 
-        pool = ProcessPoolExecutor(workers, mp_context=multiprocessing.get_context("spawn"),
-                                   initializer=_start_worker,
-                                   initargs=(env_id, env_kwargs, settings, script["policy"], kwargs))  # fmt: skip
+        pool = worker_pool(workers, _start_worker, (env_id, env_kwargs, settings, script["policy"], kwargs))
 
     columns: dict[str, list] = {"observations": [], "actions": [], "rewards": []}
     starts: list[int] = []
@@ -316,11 +313,9 @@ _WORKER: tuple | None = None
 def _start_worker(env_id: str, env_kwargs: dict[str, Any], settings: dict[str, Any], policy: str,
                   kwargs: dict[str, Any]) -> None:
     global _WORKER
-    import torch
     from stable_baselines3 import PPO
     from stable_baselines3.common.vec_env import DummyVecEnv
 
-    torch.set_num_threads(1)
     rollouts = _Rollouts(env_id, env_kwargs, settings)
     model = PPO(policy, DummyVecEnv([lambda: rollouts.env]), device="cpu", verbose=0, **kwargs)
     _WORKER = (rollouts, model)

@@ -18,6 +18,8 @@ from pathlib import Path
 import gymnasium as gym
 import numpy as np
 
+from agents.workers import worker_pool
+
 
 @dataclass
 class Episode:
@@ -225,7 +227,7 @@ def evaluate(
         runner = _EpisodeRunner(env_id, policy, env_kwargs, stats)
         done = map(runner, seeds)
     else:
-        pool = _worker_pool(min(workers, episodes), env_id, policy, env_kwargs, stats)
+        pool = worker_pool(min(workers, episodes), _start_worker, (env_id, policy, env_kwargs, stats))
         done = _as_completed(pool, seeds)
     if progress:
         from tqdm import tqdm
@@ -320,30 +322,11 @@ _WORKER_RUNNER: _EpisodeRunner | None = None
 
 def _start_worker(env_id: str, policy: str, env_kwargs: dict, vecnormalize: Path | None) -> None:
     global _WORKER_RUNNER
-    try:
-        import torch
-
-        torch.set_num_threads(1)
-    except ImportError:
-        pass
     _WORKER_RUNNER = _EpisodeRunner(env_id, policy, env_kwargs, vecnormalize)
 
 
 def _worker_episode(env_seed: int) -> Episode:
     return _WORKER_RUNNER(env_seed)
-
-
-def _worker_pool(workers: int, env_id: str, policy: str, env_kwargs: dict, vecnormalize: Path | None):
-    """A process pool whose workers each hold an :class:`_EpisodeRunner` (spawned, not forked: numba and torch
-    keep threads; one thread each through the inherited environment)."""
-    import multiprocessing
-    import os
-    from concurrent.futures import ProcessPoolExecutor
-
-    for var in ("NUMBA_NUM_THREADS", "OMP_NUM_THREADS", "OPENBLAS_NUM_THREADS", "MKL_NUM_THREADS"):
-        os.environ.setdefault(var, "1")
-    return ProcessPoolExecutor(workers, mp_context=multiprocessing.get_context("spawn"), initializer=_start_worker,
-                               initargs=(env_id, policy, env_kwargs, vecnormalize))  # fmt: skip
 
 
 def _as_completed(pool, seeds: range):
