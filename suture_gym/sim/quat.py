@@ -208,9 +208,9 @@ def quat_from_two_vectors(a, b):
             k = 2
         e = np.zeros(3)
         e[k] = 1.0
-        axis = np.cross(ua, e)
+        axis = cross3(ua, e)
         return quat_from_axis_angle(axis, np.pi)
-    c = np.cross(ua, ub)
+    c = cross3(ua, ub)
     out[0] = 1.0 + d
     out[1] = c[0]
     out[2] = c[1]

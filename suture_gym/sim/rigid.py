@@ -12,6 +12,7 @@ import numpy as np
 from numba import njit
 
 from suture_gym.sim.quat import (
+    cross3,
     quat_conj,
     quat_from_rotation_vector,
     quat_mul,
@@ -37,7 +38,7 @@ def point_inv_mass(inv_mass, inv_inertia_world, r, n):
     ``w = 1/m + (r x n)^T I^-1 (r x n)`` with ``r`` (3,) the point relative to the centre of mass (world, m)
     and ``I^-1`` the world inverse inertia (3, 3) (Muller et al. 2020).
     """
-    rn = np.cross(r, n)
+    rn = cross3(r, n)
     return inv_mass + rn @ (inv_inertia_world @ rn)
 
 
@@ -70,7 +71,7 @@ def apply_point_impulse(pos, quat, inv_mass, inv_inertia_world, r, p):
     """
     new_pos = pos.copy()
     new_quat = quat.copy()
-    rigid_apply(new_pos, new_quat, inv_mass, inv_inertia_world, p, np.cross(r, p), 1.0)
+    rigid_apply(new_pos, new_quat, inv_mass, inv_inertia_world, p, cross3(r, p), 1.0)
     return new_pos, new_quat
 
 
@@ -94,7 +95,7 @@ def rigid_predict(
     new_pos = pos + dt * new_vel
     w_b = quat_rotate_inv(quat, omega)
     tau_b = quat_rotate_inv(quat, torque)
-    gyro = np.cross(w_b, inertia_body @ w_b)
+    gyro = cross3(w_b, inertia_body @ w_b)
     w_b = w_b / (1.0 + dt * ang_damp) + dt * (inv_inertia_body @ (tau_b - gyro))
     new_omega = quat_rotate(quat, w_b)
     new_quat = quat_normalize(quat_mul(quat_from_rotation_vector(dt * new_omega), quat))

@@ -27,7 +27,7 @@ import math
 import numpy as np
 from numba import njit
 
-from suture_gym.sim.quat import quat_to_matrix, quat_to_matrix_into, quat_turn_into
+from suture_gym.sim.quat import cross3, quat_to_matrix, quat_to_matrix_into, quat_turn_into
 
 #: A pivot of the block solve below this fraction of its row's diagonal marks the row as redundant.
 _PIVOT_TOL = 1.0e-12
@@ -731,7 +731,7 @@ def apply_rod_solution(rod, needle, frames, contacts, z, lam, node_pos, seg_quat
         p = -z[0, :3]
         needle_pos += needle_inv_mass * p
         dtheta[:] = 0.0
-        _mv_acc(att_winv, np.cross(att_r, p), 1.0, dtheta)
+        _mv_acc(att_winv, cross3(att_r, p), 1.0, dtheta)
         quat_turn_into(needle_quat, dtheta, needle_quat)
 
 

@@ -8,6 +8,7 @@ import numpy as np
 from numba import njit
 
 from suture_gym.sim.coupling.params import TINY_LENGTH
+from suture_gym.sim.quat import cross3
 
 
 @njit(cache=True)
@@ -113,7 +114,7 @@ def _vertex_normal(v, tri_vertices, vertex_tri_start, vertex_tri_index, tissue_q
     for s in range(vertex_tri_start[v], vertex_tri_start[v + 1]):
         t = vertex_tri_index[s]
         a = tissue_q[tri_vertices[t, 0]]
-        n += np.cross(tissue_q[tri_vertices[t, 1]] - a, tissue_q[tri_vertices[t, 2]] - a)
+        n += cross3(tissue_q[tri_vertices[t, 1]] - a, tissue_q[tri_vertices[t, 2]] - a)
     return n
 
 
@@ -133,7 +134,7 @@ def surface_normal(tri, bary, tri_vertices, vertex_tri_start, vertex_tri_index, 
     length = math.sqrt(n @ n)
     if length <= 1.0e-6:
         a = tissue_q[tri_vertices[tri, 0]]
-        n = np.cross(tissue_q[tri_vertices[tri, 1]] - a, tissue_q[tri_vertices[tri, 2]] - a)
+        n = cross3(tissue_q[tri_vertices[tri, 1]] - a, tissue_q[tri_vertices[tri, 2]] - a)
         length = math.sqrt(n @ n)
         if length <= 0.0:
             return np.zeros(3)

@@ -34,7 +34,7 @@ from suture_gym.sim.coupling.paths import (
     update_tip_anchor,
 )
 from suture_gym.sim.coupling.tracking import track_access_points
-from suture_gym.sim.quat import quat_to_matrix
+from suture_gym.sim.quat import cross3, quat_to_matrix
 
 
 @njit(cache=True)
@@ -220,7 +220,7 @@ def contact_frames(
         tri = row_tri[i]
         if tri_rigid[tri]:
             a = tissue_q[tri_vertices[tri, 0]]
-            n = np.cross(tissue_q[tri_vertices[tri, 1]] - a, tissue_q[tri_vertices[tri, 2]] - a)
+            n = cross3(tissue_q[tri_vertices[tri, 1]] - a, tissue_q[tri_vertices[tri, 2]] - a)
             length = math.sqrt(n @ n)
             if length > 0.0:
                 n /= length

@@ -22,6 +22,7 @@ from suture_gym.sim.coupling.constraints import (
     xpbd_delta_lambda,
 )
 from suture_gym.sim.coupling.params import ROW_ANCHOR, ROW_EXIT, ROW_NONE, ROW_PATH, TINY_LENGTH
+from suture_gym.sim.quat import cross3
 from suture_gym.sim.rigid import (
     body_point,
     point_inv_mass_matrix,
@@ -63,7 +64,7 @@ def _project_contact(
     if c >= 0.0 and lam == 0.0:
         return lam
     inv_inertia = world_inv_inertia(needle_quat, needle_inv_inertia_body)
-    ang = np.cross(q - needle_pos, normal)
+    ang = cross3(q - needle_pos, normal)
     w = rigid_generalized_inv_mass(needle_inv_mass, inv_inertia, normal, ang)
     tissue_w = tissue[0]
     if is_diagonal(tissue):
@@ -203,7 +204,7 @@ def _project_anchor(
             offset = moved - (moved @ normal) * normal
             friction_out[3] = max(math.sqrt(offset @ offset), TINY_LENGTH)
     friction_out[:3] += impulse - (impulse @ normal) * normal
-    rigid_apply(needle_pos, needle_quat, needle_inv_mass, inv_inertia, impulse, np.cross(r, impulse), 1.0)
+    rigid_apply(needle_pos, needle_quat, needle_inv_mass, inv_inertia, impulse, cross3(r, impulse), 1.0)
     vertex, weight, count = patch[0], patch[1], patch[2][0]
     tissue_inv_mass = tissue[0]
     if not is_diagonal(tissue):
@@ -302,12 +303,12 @@ def project_cutting(needle, tissue, dt, cut, needle_pos, needle_quat, tissue_q):
     p0 = tissue_point(tissue_q_prev, idx, wt)
     advance = ((q - q0) - (p - p0)) @ t
     w_tissue = weighted_inv_mass(compliance, idx, wt, t)
-    w = rigid_generalized_inv_mass(needle_inv_mass, inv_inertia, t, np.cross(r, t)) + w_tissue
+    w = rigid_generalized_inv_mass(needle_inv_mass, inv_inertia, t, cross3(r, t)) + w_tissue
     dlam = xpbd_delta_lambda(advance, w, 0.0, 0.0)
     total = min(max(lam[0] + dlam, -cap), 0.0)
     dlam = total - lam[0]
     lam[0] = total
-    rigid_apply(needle_pos, needle_quat, needle_inv_mass, inv_inertia, t, np.cross(r, t), dlam)
+    rigid_apply(needle_pos, needle_quat, needle_inv_mass, inv_inertia, t, cross3(r, t), dlam)
     move_point(compliance, idx, wt, dlam, t, tissue_q)
 
 
@@ -325,11 +326,11 @@ def _project_path_row(i, needle, compliance, coefficients, rows, needle_pos, nee
     ok, c, n = node_path_constraint(q, p, t)
     if ok:
         w_tissue = weighted_inv_mass(compliance, idx, wt, n)
-        w = rigid_generalized_inv_mass(needle_inv_mass, inv_inertia, n, np.cross(r, n)) + w_tissue
+        w = rigid_generalized_inv_mass(needle_inv_mass, inv_inertia, n, cross3(r, n)) + w_tissue
         dlam = xpbd_delta_lambda(c, w, 0.0, row_lambda[i])
         dlam = max(row_lambda[i] + dlam, -tear_force * dt * dt) - row_lambda[i]
         row_lambda[i] += dlam
-        rigid_apply(needle_pos, needle_quat, needle_inv_mass, inv_inertia, n, np.cross(r, n), dlam)
+        rigid_apply(needle_pos, needle_quat, needle_inv_mass, inv_inertia, n, cross3(r, n), dlam)
         move_point(compliance, idx, wt, dlam, n, tissue_q)
 
 
@@ -352,12 +353,12 @@ def _project_axial_friction(i, needle, tissue, coefficients, rows, needle_pos, n
     p = tissue_point(tissue_q, idx, wt)
     p0 = tissue_point(tissue_q_prev, idx, wt)
     slip = ((q - q0) - (p - p0)) @ t
-    w = rigid_generalized_inv_mass(needle_inv_mass, inv_inertia, t, np.cross(r, t)) + weighted_inv_mass(
+    w = rigid_generalized_inv_mass(needle_inv_mass, inv_inertia, t, cross3(r, t)) + weighted_inv_mass(
         compliance, idx, wt, t
     )
     dlam = xpbd_delta_lambda(slip, w, 0.0, 0.0)
     total = min(max(row_friction_lambda[i] + dlam, -cap), cap)
     dlam = total - row_friction_lambda[i]
     row_friction_lambda[i] = total
-    rigid_apply(needle_pos, needle_quat, needle_inv_mass, inv_inertia, t, np.cross(r, t), dlam)
+    rigid_apply(needle_pos, needle_quat, needle_inv_mass, inv_inertia, t, cross3(r, t), dlam)
     move_point(compliance, idx, wt, dlam, t, tissue_q)

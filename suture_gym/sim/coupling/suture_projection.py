@@ -20,6 +20,7 @@ from suture_gym.sim.coupling.constraints import (
     xpbd_delta_lambda,
 )
 from suture_gym.sim.coupling.params import PATH_ROW_VERTICES, ROW_PATH, ROW_TRIANGLE, ROW_WALL
+from suture_gym.sim.quat import cross3
 from suture_gym.sim.rigid import (
     body_point,
     rigid_apply,
@@ -374,7 +375,7 @@ def project_access_rows(access, access_count, needle, suture_mass, tissue, tri_v
             g = access_weight[a, e] * (ga if e < 2 else gb)
             if node < nn:
                 lin += g
-                ang += np.cross(points[e] - needle_pos, g)
+                ang += cross3(points[e] - needle_pos, g)
             else:
                 w += node_inv_mass_along(suture_mass, node - nn + 1, g)
         inv_inertia = world_inv_inertia(needle_quat, needle_inv_inertia_body)
