@@ -458,6 +458,25 @@ def _brute_crossings(a, b, q, faces):
     return hits
 
 
+def test_signed_distance_box_margin_skips_only_points_outside_the_box(deformed_sphere):
+    q0, q, faces = deformed_sphere
+    surface = build_triangle_surface(faces, q0)
+    refit_bvh(surface.bvh, q)
+    rng = np.random.default_rng(8)
+    pts = np.vstack([near_surface_points(q, faces, rng, 100, 0.002), rng.uniform(-0.05, 0.05, (300, 3))])
+    margin = 0.004
+    lo, hi = q.min(axis=0) - margin, q.max(axis=0) + margin
+    near = np.all((pts >= lo) & (pts <= hi), axis=1)
+    assert 100 < near.sum() < len(pts)  # both kinds present
+    full = signed_distance(pts, surface, q)
+    sdist, tri, bary = signed_distance(pts, surface, q, box_margin=margin)
+    assert np.array_equal(sdist[near], full[0][near]) and np.array_equal(tri[near], full[1][near])
+    assert np.array_equal(bary[near], full[2][near])
+    assert np.all(np.isposinf(sdist[~near])) and np.all(tri[~near] == -1) and np.all(bary[~near] == 0.0)
+    with pytest.raises(ValueError, match="box_margin"):
+        signed_distance(pts, surface, q, box_margin=-1.0)
+
+
 def test_segment_crossings_against_brute_force(deformed_sphere):
     q0, q, faces = deformed_sphere
     surface = build_triangle_surface(faces, q0)
@@ -468,6 +487,9 @@ def test_segment_crossings_against_brute_force(deformed_sphere):
     got = segment_crossings(a, b, surface, q)
     ref = _brute_crossings(a, b, q, faces)
     assert len(ref) > 60
+    unchecked = segment_crossings(a, b, surface, q, check_finite=False)  # the solver's path: same crossings
+    for name in ("crossing_segment", "crossing_tri", "crossing_bary", "crossing_t", "crossing_q", "crossing_direction"):
+        assert np.array_equal(getattr(unchecked, name), getattr(got, name)), name
     assert set(zip(got.crossing_segment.tolist(), got.crossing_tri.tolist(), strict=True)) == set(ref)
     for s, f, t, bary in zip(
         got.crossing_segment, got.crossing_tri, got.crossing_t, got.crossing_bary, strict=True
@@ -597,6 +619,9 @@ def test_empty_queries_return_empty_arrays(sphere):
     assert sdist.shape == (0,) and tri.shape == (0,) and bary.shape == (0, 3)
     got = segment_crossings(np.zeros((0, 3)), np.zeros((0, 3)), surface, q)
     assert got.crossing_q.shape == (0, 3)
+    far = np.full((4, 3), 10.0)  # segments that cross nothing
+    got = segment_crossings(far, far + 1.0, surface, q, check_finite=False)
+    assert got.crossing_segment.shape == (0,) and got.crossing_bary.shape == (0, 3) and got.crossing_q.shape == (0, 3)
 
 
 def test_determinism_bit_identical(deformed_sphere):

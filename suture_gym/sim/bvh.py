@@ -325,14 +325,17 @@ def build_bvh(element_vertices: np.ndarray, vertex_q: np.ndarray, leaf_size: int
     return bvh
 
 
-def refit_bvh(bvh: BVH, vertex_q: np.ndarray) -> None:
+def refit_bvh(bvh: BVH, vertex_q: np.ndarray, check_finite: bool = True) -> None:
     """Refit every box of ``bvh`` to the vertex positions ``vertex_q`` in O(nodes + elements), in place.
 
     Args:
         bvh: hierarchy from :func:`build_bvh`; its ``node_lo``/``node_hi`` are overwritten.
         vertex_q: (N, 3) float64 [m] current vertex positions, N = ``bvh.vertex_count``, finite.
+        check_finite: validate ``vertex_q`` (shape, dtype, finite values; ValueError naming the bad row). The
+            solver's detection passes False: it hands over a C-contiguous float64 array of the mesh's vertices
+            that :class:`~suture_gym.sim.solver.Solver` has just checked to be finite.
     """
-    q = _check_positions(vertex_q, "vertex_q", bvh.vertex_count)
+    q = _check_positions(vertex_q, "vertex_q", bvh.vertex_count) if check_finite else vertex_q
     _refit_kernel(
         bvh.element_vertices,
         q,

@@ -247,7 +247,7 @@ def closest_triangles(
 
 
 def signed_distance(
-    points: np.ndarray, surface: TriangleSurface, vertex_q: np.ndarray
+    points: np.ndarray, surface: TriangleSurface, vertex_q: np.ndarray, box_margin: float = np.inf
 ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """Signed distance of each point to the closed deformed surface, with the closest triangle.
 
@@ -260,11 +260,15 @@ def signed_distance(
         points: (M, 3) float64 [m], e.g. strand node positions.
         surface: from :func:`build_triangle_surface`, BVH refitted to ``vertex_q``.
         vertex_q: (N, 3) float64 [m] current particle positions.
+        box_margin: m, >= 0; points farther than this outside the surface's bounding box are skipped
+            (``+inf``, triangle -1, zero barycentrics: a broad phase); ``inf`` (the default) skips none.
 
     Returns:
         ``(sdist, tri, bary)``: sdist (M,) float64 [m], negative inside; tri (M,) int32 closest triangle;
         bary (M, 3) float64 barycentric coordinates of the closest point in ``tri``.
     """
+    if not box_margin >= 0.0:
+        raise ValueError(f"box_margin must be >= 0, got {box_margin!r}")
     p = _check_query(points, "points")
     q = _check_vertices(vertex_q, surface.bvh)
     sdist = np.empty(p.shape[0])
@@ -273,6 +277,7 @@ def signed_distance(
     b = surface.bvh
     signed_distance_kernel(
         p,
+        float(box_margin),
         b.tree,
         surface.tri_neighbors,
         surface.vertex_tri_start,
@@ -344,7 +349,11 @@ def locate_points(
 
 
 def segment_crossings(
-    seg_start: np.ndarray, seg_end: np.ndarray, surface: TriangleSurface, vertex_q: np.ndarray
+    seg_start: np.ndarray,
+    seg_end: np.ndarray,
+    surface: TriangleSurface,
+    vertex_q: np.ndarray,
+    check_finite: bool = True,
 ) -> SegmentCrossings:
     """Every crossing of the segments ``seg_start[i] -> seg_end[i]`` with the surface triangles.
 
@@ -357,15 +366,20 @@ def segment_crossings(
         seg_start, seg_end: (S, 3) float64 [m] segment end points.
         surface: from :func:`build_triangle_surface`, BVH refitted to ``vertex_q``.
         vertex_q: (N, 3) float64 [m] current particle positions.
+        check_finite: validate the three arrays (shapes, finite values; ValueError naming the bad one). The
+            solver's detection passes False: its C-contiguous float64 positions were checked finite just before.
 
     Returns:
         :class:`SegmentCrossings`, sorted by segment, then ``t``, then triangle.
     """
-    a = _check_query(seg_start, "seg_start")
-    b_end = _check_query(seg_end, "seg_end")
+    if check_finite:
+        a = _check_query(seg_start, "seg_start")
+        b_end = _check_query(seg_end, "seg_end")
+        q = _check_vertices(vertex_q, surface.bvh)
+    else:
+        a, b_end, q = seg_start, seg_end, vertex_q
     if a.shape != b_end.shape:
         raise ValueError(f"seg_start {a.shape} and seg_end {b_end.shape} must have the same shape")
-    q = _check_vertices(vertex_q, surface.bvh)
     b = surface.bvh
     capacity = max(16, 2 * a.shape[0])
     while True:
@@ -388,6 +402,8 @@ def segment_crossings(
         if count <= capacity:
             break
         capacity = count
+    if count == 0:  # the common case in the solver's detection: no sort, no copies
+        return SegmentCrossings(seg[:0], tri[:0], bary[:0], t[:0], np.empty((0, 3)), direction[:0])
     order = np.lexsort((tri[:count], t[:count], seg[:count]))
     seg = seg[order]
     t = t[order]

@@ -374,6 +374,7 @@ def closest_kernel(
 @njit(cache=True)
 def signed_distance_kernel(
     points,
+    box_margin,
     tree,
     tri_neighbors,
     vertex_tri_start,
@@ -383,13 +384,24 @@ def signed_distance_kernel(
     out_tri,
     out_bary,
 ):
+    """Signed distances of ``points`` (M, 3) within ``box_margin`` (m; ``inf``: all of them) of the surface's
+    box; the points outside it get ``inf``, triangle -1 and zero barycentrics."""
     node_lo, node_hi, node_child, node_first, node_count, sorted_tri, tri_vertices = tree
     stack = np.empty(node_child.shape[0] + 1, np.int32)
     stack_d2 = np.empty(node_child.shape[0] + 1)
+    lo_x, lo_y, lo_z = node_lo[0, 0] - box_margin, node_lo[0, 1] - box_margin, node_lo[0, 2] - box_margin
+    hi_x, hi_y, hi_z = node_hi[0, 0] + box_margin, node_hi[0, 1] + box_margin, node_hi[0, 2] + box_margin
     for i in range(points.shape[0]):
         px = points[i, 0]
         py = points[i, 1]
         pz = points[i, 2]
+        if not (lo_x <= px <= hi_x and lo_y <= py <= hi_y and lo_z <= pz <= hi_z):
+            out_sdist[i] = np.inf
+            out_tri[i] = -1
+            out_bary[i, 0] = 0.0
+            out_bary[i, 1] = 0.0
+            out_bary[i, 2] = 0.0
+            continue
         t, u, v, w, feature, d2 = _nearest_triangle(
             px,
             py,

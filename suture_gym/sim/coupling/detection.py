@@ -8,10 +8,8 @@ import numpy as np
 from numba import njit
 
 from suture_gym.sim.bvh import refit_bvh
-from suture_gym.sim.collision import (
-    segment_crossings,
-    signed_distance,
-)
+from suture_gym.sim.collision import segment_crossings
+from suture_gym.sim.collision_kernels import signed_distance_kernel
 from suture_gym.sim.coupling.constraints import node_surface_constraint, surface_normal
 from suture_gym.sim.coupling.model import CouplingModel, CouplingState, CouplingWork
 from suture_gym.sim.coupling.params import (
@@ -291,7 +289,7 @@ def rigid_crossings(model: CouplingModel, work: CouplingWork, tissue_q, strand_q
     ``strand_q_start -> strand_q``, crosses a rigid face gets a contact row with that face at the crossing
     point that keeps it on the side it came from (outside: ROW_TRIANGLE, inside: ROW_WALL), whatever row it
     had; so neither a needle dragging the tissue down nor a tip cutting through it passes the base."""
-    hits = segment_crossings(strand_q_start, strand_q, work.surface, tissue_q)
+    hits = segment_crossings(strand_q_start, strand_q, work.surface, tissue_q, check_finite=False)
     done = np.zeros(strand_q.shape[0], dtype=bool)
     for h in np.flatnonzero(model.tri_rigid[hits.crossing_tri]):
         i = hits.crossing_segment[h]
@@ -364,20 +362,14 @@ def strand_distances(
     """Broad phase and signed distances (module docstring, detection step 1): refit ``work``'s BVHs to
     ``tissue_q`` (N, 3) m; strand nodes (``strand_q`` (M, 3) m) within ``broad_phase_margin`` of the tissue's
     box get their signed distance, closest triangle and barycentrics in ``state``, the others ``+inf``, -1, 0."""
-    refit_bvh(work.surface.bvh, tissue_q)
-    refit_bvh(work.tet_bvh, tissue_q)
-    margin = model.params.broad_phase_margin
-    lo = work.surface.bvh.node_lo[0] - margin
-    hi = work.surface.bvh.node_hi[0] + margin
-    near = np.flatnonzero(np.all((strand_q >= lo) & (strand_q <= hi), axis=1))
-    state.strand_sdist[:] = np.inf
-    state.strand_tri[:] = -1
-    state.strand_bary[:] = 0.0
-    if near.size:
-        sdist, tri, bary = signed_distance(strand_q[near], work.surface, tissue_q)
-        state.strand_sdist[near] = sdist
-        state.strand_tri[near] = tri
-        state.strand_bary[near] = bary
+    # No validation here: the solver checked tissue_q and the strand's positions finite just before detection.
+    refit_bvh(work.surface.bvh, tissue_q, check_finite=False)
+    refit_bvh(work.tet_bvh, tissue_q, check_finite=False)
+    surface = work.surface
+    signed_distance_kernel(
+        strand_q, model.params.broad_phase_margin, surface.bvh.tree, surface.tri_neighbors, surface.vertex_tri_start,
+        surface.vertex_tri_index, tissue_q, state.strand_sdist, state.strand_tri, state.strand_bary,
+    )  # fmt: skip
 
 
 def _wall_and_anchor_rows(model: CouplingModel, state: CouplingState, work: CouplingWork) -> None:
