@@ -29,6 +29,7 @@ from __future__ import annotations
 import math
 import numbers
 from dataclasses import dataclass, field
+from functools import cached_property
 
 import numpy as np
 
@@ -200,6 +201,12 @@ class NeedleModel:
     def node_count(self) -> int:
         """Number of arc nodes."""
         return self.node_pos_body.shape[0]
+
+    @cached_property
+    def node_reach(self) -> float:
+        """Largest distance of an arc node from the centre of mass, m (a bound on a node's speed is then
+        ``|v| + node_reach |omega|``)."""
+        return float(np.sqrt((self.node_pos_body**2).sum(axis=1).max()))
 
     @property
     def tip_pos_body(self) -> np.ndarray:

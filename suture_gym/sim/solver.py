@@ -682,10 +682,8 @@ class Solver:
                 friction_kernel(state.work.rod_work.contact_push, model.obstacles.friction, dt, rod.node_vel)
         if model.needle is not None:
             needle_update_velocities(state.needle, dt)
-            reach = float(np.sqrt((model.needle.node_pos_body**2).sum(axis=1).max()))
-            speed = float(np.linalg.norm(state.needle.body_vel)) + reach * float(
-                np.linalg.norm(state.needle.body_omega)
-            )
+            vel, omega = state.needle.body_vel, state.needle.body_omega
+            speed = math.sqrt(float(vel @ vel)) + model.needle.node_reach * math.sqrt(float(omega @ omega))
             diverged |= not speed <= self.max_speed
         return diverged
 

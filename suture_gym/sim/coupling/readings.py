@@ -5,6 +5,7 @@ from __future__ import annotations
 import math
 
 import numpy as np
+from numba import njit
 
 from suture_gym.sim.coupling.model import CouplingModel, CouplingState, CouplingWork
 from suture_gym.sim.coupling.params import ROW_ANCHOR, ROW_EXIT, ROW_NONE, ROW_PATH, ROW_TRIANGLE
@@ -28,27 +29,56 @@ def coupling_finish(
     the next detection anchors it where it is.
     """
     inv_dt2 = 1.0 / (dt * dt)
-    nn = model.needle_node_count
-    d = np.asarray(tip_direction, dtype=np.float64)
-    kind = work.row_kind[:nn]
-    tip = model.strand_sigma[:nn] <= model.params.tip_length
-    touching = tip & (kind == ROW_TRIANGLE)
-    axial = -(work.row_contact_normal[:nn][touching] @ d)
-    load = float(work.row_lambda[:nn][touching] @ axial)
-    anchored = kind[0] == ROW_ANCHOR or kind[0] == ROW_EXIT
-    if anchored:
-        load -= work.row_lambda[0] * float(work.row_contact_normal[0] @ d) + float(work.tip_friction[:3] @ d)
-        if work.tip_friction[3] > 0.0:
-            state.tip_anchor_tri = -1
+    d = np.ascontiguousarray(tip_direction, dtype=np.float64)
+    load, friction, largest, slid = _readings(
+        model.needle_node_count, model.params.tip_length, model.strand_sigma, model.tri_rigid, work.row_kind,
+        work.row_tri, work.row_contact_normal, work.row_lambda, work.row_friction_lambda, work.tip_friction,
+        work.access_lambda, work.access_count, d,
+    )  # fmt: skip
+    if slid:
+        state.tip_anchor_tri = -1
     state.tip_force = max(0.0, load * inv_dt2)
-    state.friction_force = float(np.abs(work.row_friction_lambda).sum() * inv_dt2)
+    state.friction_force = friction * inv_dt2
     state.cut_force = -float(work.cut_rows[4][0]) * inv_dt2
-    on_support = (work.row_kind != ROW_NONE) & (work.row_kind != ROW_PATH) & model.tri_rigid[work.row_tri]
-    largest = float(np.abs(np.where(on_support, 0.0, work.row_lambda)).max(initial=0.0))
-    if anchored and not on_support[0]:
-        largest = max(largest, math.hypot(work.row_lambda[0], float(np.linalg.norm(work.tip_friction[:3]))))
-    if work.access_count:
-        largest = max(largest, float(np.abs(work.access_lambda[: work.access_count]).max()))
     state.max_force = largest * inv_dt2
     if state.max_force >= (1.0 - 1.0e-9) * model.params.tear_force:  # a row held at its cap reads tear_force
         state.damaged = True
+
+
+@njit(cache=True)
+def _readings(nn, tip_length, strand_sigma, tri_rigid, row_kind, row_tri, row_contact_normal, row_lambda,
+              row_friction_lambda, tip_friction, access_lambda, access_count, d):  # fmt: skip
+    """The sums of :func:`coupling_finish` in one pass over the rows: ``(load, friction, largest, slid)``, the
+    tip's axial load and the summed friction multipliers (kg m, summed in node order), the largest multiplier the
+    tissue bore (kg m) and whether the anchored tip slid."""
+    load = 0.0
+    for i in range(nn):
+        if strand_sigma[i] <= tip_length and row_kind[i] == ROW_TRIANGLE:
+            n = row_contact_normal[i]
+            load += row_lambda[i] * -(n[0] * d[0] + n[1] * d[1] + n[2] * d[2])
+    anchored = row_kind[0] == ROW_ANCHOR or row_kind[0] == ROW_EXIT
+    slid = False
+    if anchored:
+        n = row_contact_normal[0]
+        load -= row_lambda[0] * (n[0] * d[0] + n[1] * d[1] + n[2] * d[2]) + (
+            tip_friction[0] * d[0] + tip_friction[1] * d[1] + tip_friction[2] * d[2]
+        )
+        slid = tip_friction[3] > 0.0
+    friction = 0.0
+    for i in range(row_friction_lambda.shape[0]):
+        friction += abs(row_friction_lambda[i])
+    largest = 0.0
+    support_0 = False
+    for i in range(row_kind.shape[0]):
+        # rows against rigid faces (the base, a clamp) are not borne by the tissue
+        on_support = row_kind[i] != ROW_NONE and row_kind[i] != ROW_PATH and tri_rigid[row_tri[i]]
+        if i == 0:
+            support_0 = on_support
+        if not on_support:
+            largest = max(largest, abs(row_lambda[i]))
+    if anchored and not support_0:
+        f = tip_friction
+        largest = max(largest, math.hypot(row_lambda[0], math.sqrt(f[0] * f[0] + f[1] * f[1] + f[2] * f[2])))
+    for i in range(access_count):
+        largest = max(largest, abs(access_lambda[i]))
+    return load, friction, largest, slid
