@@ -152,23 +152,28 @@ def test_same_seed_same_actions_bit_identical(env_id):
     assert runs[0] == runs[1]
 
 
+def _expert_record(env, seed: int, steps: int, options: dict | None = None) -> list:
+    """The scripted expert's episode from ``env.reset(seed=seed, options=options)`` for at most ``steps`` steps:
+    the raw bytes of every observation and each step's reward, for bit-for-bit comparison."""
+    from agents.expert import ExpertPolicy
+
+    expert = ExpertPolicy(env)
+    obs, _ = env.reset(seed=seed, options=options)
+    expert.reset()
+    record = [obs.tobytes()]
+    for _ in range(steps):
+        obs, reward, terminated, truncated, _ = env.step(expert(obs))
+        record.append((obs.tobytes(), reward))
+        if terminated or truncated:
+            break
+    return record
+
+
 def test_an_episode_does_not_depend_on_the_episodes_before_it():
     """The same seed and actions replay the same episode bit for bit in a fresh env and in one that has run
     another episode first (the nominal config keeps the tissue integrator, and its cached columns of the rest
     system's inverse, across resets)."""
     from agents.expert import ExpertPolicy
-
-    def episode(env, seed, steps):
-        expert = ExpertPolicy(env)
-        obs, _ = env.reset(seed=seed)
-        expert.reset()
-        record = [obs.tobytes()]
-        for _ in range(steps):
-            obs, reward, terminated, truncated, _ = env.step(expert(obs))
-            record.append((obs.tobytes(), reward))
-            if terminated or truncated:
-                break
-        return record
 
     config = Path(__file__).resolve().parents[1] / "configs" / "envs" / "needle_insert_deterministic.yaml"
     fresh = gym.make("SutureGym/NeedleInsert-v2", config=str(config)).unwrapped
@@ -181,7 +186,7 @@ def test_an_episode_does_not_depend_on_the_episodes_before_it():
         obs, _, terminated, truncated, _ = used.step(action)
         if terminated or truncated:
             break
-    assert episode(fresh, 5, 250) == episode(used, 5, 250)
+    assert _expert_record(fresh, 5, 250) == _expert_record(used, 5, 250)
 
 
 def test_observations_do_not_alias_internal_arrays():
@@ -560,20 +565,7 @@ def test_a_start_phase_episode_does_not_depend_on_the_episodes_before_it():
     """A reset into a start phase (the cached nominal start carried over to the episode's randomised tissue and
     settled) replays bit for bit in a fresh env and in one that has run a random episode and another phase reset
     first."""
-    from agents.expert import ExpertPolicy
-
-    def episode(env, seed, steps):
-        expert = ExpertPolicy(env)
-        obs, _ = env.reset(seed=seed, options={"phase": "inserted"})
-        expert.reset()
-        record = [obs.tobytes()]
-        for _ in range(steps):
-            obs, reward, terminated, truncated, _ = env.step(expert(obs))
-            record.append((obs.tobytes(), reward))
-            if terminated or truncated:
-                break
-        return record
-
+    inserted = {"phase": "inserted"}
     fresh = gym.make("SutureGym/NeedleInsert-v2").unwrapped
     used = gym.make("SutureGym/NeedleInsert-v2").unwrapped
     used.action_space.seed(1)
@@ -582,5 +574,5 @@ def test_a_start_phase_episode_does_not_depend_on_the_episodes_before_it():
         _, _, terminated, truncated, _ = used.step(used.action_space.sample())
         if terminated or truncated:
             break
-    episode(used, 2, 40)
-    assert episode(fresh, 7, 120) == episode(used, 7, 120)
+    _expert_record(used, 2, 40, inserted)
+    assert _expert_record(fresh, 7, 120, inserted) == _expert_record(used, 7, 120, inserted)
