@@ -214,3 +214,36 @@ def test_learning_curves_of_one_run_and_of_several(tmp_path):
         assert png.read_bytes()[:8] == b"\x89PNG\r\n\x1a\n" and png.stat().st_size > 5000
     with pytest.raises(ValueError, match="labels"):
         plot_learning_curve(files, tmp_path / "bad.png", labels=["only one"])
+
+
+def test_learning_curves_from_dagger_summaries(tmp_path):
+    pytest.importorskip("matplotlib")
+    import json
+
+    from agents.plotting import load_curve, plot_learning_curve
+
+    iterations = [{"iteration": 0, "beta": 1.0, "steps": 100, "checkpoint_steps": 100, "success_rate": 1.0,
+                   "mean_return": 9.0},
+                  {"iteration": 1, "beta": 0.0, "steps": 40, "checkpoint_steps": 140, "success_rate": 0.0,
+                   "mean_return": -3.0},
+                  {"iteration": 2, "beta": 0.0, "steps": 60, "checkpoint_steps": 200, "success_rate": 0.5,
+                   "mean_return": 4.0}]
+    files = []
+    for k in range(2):
+        path = tmp_path / f"seed{k}" / "training_summary.json"
+        path.parent.mkdir()
+        path.write_text(json.dumps({"timesteps": 200, "iterations": iterations}))
+        files.append(path)
+    curve = load_curve(files[0])  # the expert's iteration is no point; each other is plotted before its rollout
+    np.testing.assert_array_equal(curve["timesteps"], [100, 140])
+    np.testing.assert_array_equal(curve["results"], [[-3.0], [4.0]])
+    np.testing.assert_array_equal(curve["successes"], [[0.0], [0.5]])
+    png = plot_learning_curve(files, tmp_path / "seeds.png")
+    assert png.read_bytes()[:8] == b"\x89PNG\r\n\x1a\n"
+    bad = tmp_path / "bad.json"
+    bad.write_text(json.dumps({"timesteps": 3}))
+    with pytest.raises(ValueError, match="bad.json is not a DAgger summary"):
+        load_curve(bad)
+    bad.write_text(json.dumps({"iterations": iterations[:1]}))
+    with pytest.raises(ValueError, match="no learner-alone iteration"):
+        load_curve(bad)
