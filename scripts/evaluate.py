@@ -12,7 +12,8 @@ checkpoint's ``model_vecnormalize_<N>_steps.pkl``) unless ``--vecnormalize`` nam
 it warns on stderr and evaluates on raw observations.
 
 Prints ``success_rate, mean_return, mean_episode_length, mean_tip_force, mean_final_gap`` (and more; the
-per-episode records with ``--per-episode``).
+per-episode records with ``--per-episode``). A progress bar counts the episodes on stderr, with ``--json`` too
+(stdout holds the summary alone); ``--no-progress`` hides it.
 """
 
 from __future__ import annotations
@@ -44,6 +45,7 @@ def main(argv: list[str] | None = None) -> int:
                         help="processes to run the episodes on (the same summary; one per free core)")
     parser.add_argument("--json", action="store_true", help="print JSON")
     parser.add_argument("--per-episode", action="store_true", help="include per-episode records")
+    parser.add_argument("--no-progress", action="store_true", help="hide the progress bar (stderr)")
     parser.add_argument("--records", default=None,
                         help="append each episode's record to this file as a JSON line as soon as it ends")
     args = parser.parse_args(argv)
@@ -56,7 +58,7 @@ def main(argv: list[str] | None = None) -> int:
     if args.vecnormalize is not None and args.policy in SCRIPTED:
         parser.error(f"--vecnormalize applies to a saved model, not to --policy {args.policy}")
     summary = evaluate(args.env, args.policy, args.episodes, seed=args.seed, env_kwargs=env_kwargs,
-                       progress=not args.json, records_path=args.records, vecnormalize=args.vecnormalize,
+                       progress=not args.no_progress, records_path=args.records, vecnormalize=args.vecnormalize,
                        workers=args.workers)
     if not args.per_episode:
         summary.pop("per_episode")
