@@ -40,6 +40,14 @@ def load_curve(path: str | Path) -> dict[str, np.ndarray]:
             "successes": np.array([[it["success_rate"]] for it in alone])}
 
 
+def _run_name(path: Path) -> str:
+    """A curve file's default legend label: its run directory (``<run>/eval/evaluations.npz``), the folder of a
+    summary (``models/<Task>/seed<k>/training_summary.json``), else the file's stem."""
+    if path.parent.name == "eval":
+        return path.parent.parent.name
+    return path.parent.name if path.suffix == ".json" else path.stem
+
+
 def plot_learning_curve(evaluations: str | Path | Sequence[str | Path], out_png: str | Path, title: str = "",
                         labels: Sequence[str] | None = None) -> Path:
     """Plot the evaluation return and, when recorded, the success rate against env steps.
@@ -67,8 +75,7 @@ def plot_learning_curve(evaluations: str | Path | Sequence[str | Path], out_png:
     if not paths:
         raise ValueError("evaluations must name at least one evaluations.npz or DAgger summary")
     if labels is None:
-        labels = [p.parent.parent.name if p.parent.name == "eval" else p.parent.name if p.suffix == ".json"
-                  else p.stem for p in paths]
+        labels = [_run_name(p) for p in paths]
     if len(labels) != len(paths):
         raise ValueError(f"got {len(labels)} labels for {len(paths)} evaluation files")
     runs = [load_curve(path) for path in paths]
