@@ -168,15 +168,32 @@ def coupled_multiplier_update(
     return 0.0, 0.0
 
 
-@njit(cache=True)
-def _gather(q: np.ndarray, inv_mass: np.ndarray, nodes: np.ndarray, x_out: np.ndarray, w_out: np.ndarray) -> None:
-    """Copy the positions and inverse masses of a tet's four nodes into local buffers."""
-    for k in range(4):
-        p = nodes[k]
-        w_out[k] = inv_mass[p]
-        x_out[k, 0] = q[p, 0]
-        x_out[k, 1] = q[p, 1]
-        x_out[k, 2] = q[p, 2]
+@njit(cache=True, inline="always")
+def _f_row(q, p0, p1, p2, p3, i, dm):
+    """Row ``i`` of ``F`` of the tet with nodes ``p0..p3`` (:func:`deformation_gradient`'s arithmetic), a tuple."""
+    x0 = q[p0, i]
+    d1, d2, d3 = q[p1, i] - x0, q[p2, i] - x0, q[p3, i] - x0
+    return (
+        d1 * dm[0, 0] + d2 * dm[1, 0] + d3 * dm[2, 0],
+        d1 * dm[0, 1] + d2 * dm[1, 1] + d3 * dm[2, 1],
+        d1 * dm[0, 2] + d2 * dm[1, 2] + d3 * dm[2, 2],
+    )
+
+
+@njit(cache=True, inline="always")
+def _gradient_row(r0, r1, r2, dm):
+    """Axis ``i`` of the node gradients ``(dC/dx_0, .., dC/dx_3)[i]`` from row ``i`` ``(r0, r1, r2)`` of ``dC/dF``
+    (:func:`node_gradients`' arithmetic, in its order), a tuple."""
+    g1 = r0 * dm[0, 0] + r1 * dm[0, 1] + r2 * dm[0, 2]
+    g2 = r0 * dm[1, 0] + r1 * dm[1, 1] + r2 * dm[1, 2]
+    g3 = r0 * dm[2, 0] + r1 * dm[2, 1] + r2 * dm[2, 2]
+    return -(0.0 + g1 + g2 + g3), g1, g2, g3
+
+
+@njit(cache=True, inline="always")
+def _gram(w, ax, ay, az, bx, by, bz):
+    """One node's terms ``w (a.a, a.b, b.b)`` of :func:`coupled_multiplier_update`'s matrix."""
+    return w * (ax * ax + ay * ay + az * az), w * (ax * bx + ay * by + az * bz), w * (bx * bx + by * by + bz * bz)
 
 
 @njit(cache=True)
@@ -198,6 +215,11 @@ def project_tets(
     (compliance ``1/(lambda V0)``), Macklin & Muller 2021; increments from
     :func:`coupled_multiplier_update`, then ``x_k += w_k (grad_k C_D d_lambda_D + grad_k C_H d_lambda_H)``.
 
+    The arithmetic is that of :func:`deformation_gradient`, :func:`neo_hookean_constraints`,
+    :func:`node_gradients` and :func:`coupled_multiplier_update`, operation for operation (the same result bit
+    for bit, ``tests/test_tissue.py``), written out in scalars: with the helpers' (3, 3) and (2, 4, 3) scratch
+    arrays a sweep of the paper's cube (6,840 tets) took 1.6x as long.
+
     Args:
         inv_mass: ``(N,)`` inverse particle masses, 1/kg (0 = pinned).
         tet_indices: ``(T, 4) int32`` node indices.
@@ -210,42 +232,79 @@ def project_tets(
         q: ``(N, 3)`` particle positions, m; corrected in place.
         multiplier: ``(T, 2)`` XPBD multipliers ``[lambda_D, lambda_H]`` of this substep, J s^2; updated.
     """
-    x = np.empty((4, 3))
-    w = np.empty(4)
-    f = np.empty((3, 3))
-    dcdf = np.empty((2, 3, 3))
-    grad = np.empty((2, 4, 3))
     inv_dt2 = 1.0 / (dt * dt)
     for n in range(order.shape[0]):
         t = order[n]
-        nodes = tet_indices[t]
-        _gather(q, inv_mass, nodes, x, w)
-        if w[0] + w[1] + w[2] + w[3] == 0.0:
+        p0, p1, p2, p3 = tet_indices[t, 0], tet_indices[t, 1], tet_indices[t, 2], tet_indices[t, 3]
+        w0, w1, w2, w3 = inv_mass[p0], inv_mass[p1], inv_mass[p2], inv_mass[p3]
+        if w0 + w1 + w2 + w3 == 0.0:
             continue
-        dm_inv = tet_dm_inv[t]
-        deformation_gradient(x, dm_inv, f)
+        dm = tet_dm_inv[t]
+        f00, f01, f02 = _f_row(q, p0, p1, p2, p3, 0, dm)
+        f10, f11, f12 = _f_row(q, p0, p1, p2, p3, 1, dm)
+        f20, f21, f22 = _f_row(q, p0, p1, p2, p3, 2, dm)
         mu = tet_mu[t]
         lam = tet_lambda[t]
-        c_dev, c_hyd = neo_hookean_constraints(f, 1.0 + mu / lam, dcdf)
-        node_gradients(dcdf, dm_inv, grad)
+        gamma = 1.0 + mu / lam
+        norm = 0.0
+        for v in (f00, f01, f02, f10, f11, f12, f20, f21, f22):
+            norm += v * v
+        norm = math.sqrt(norm)
+        c_dev = norm
+        if norm < MIN_FROBENIUS:  # collapsed to a point: zero gradients, no correction
+            c_hyd = -gamma
+            e00 = e01 = e02 = e10 = e11 = e12 = e20 = e21 = e22 = 0.0
+            k00 = k01 = k02 = k10 = k11 = k12 = k20 = k21 = k22 = 0.0
+        else:
+            e00, e01, e02 = f00 / norm, f01 / norm, f02 / norm
+            e10, e11, e12 = f10 / norm, f11 / norm, f12 / norm
+            e20, e21, e22 = f20 / norm, f21 / norm, f22 / norm
+            k00, k10, k20 = f11 * f22 - f21 * f12, f21 * f02 - f01 * f22, f01 * f12 - f11 * f02
+            k01, k11, k21 = f12 * f20 - f22 * f10, f22 * f00 - f02 * f20, f02 * f10 - f12 * f00
+            k02, k12, k22 = f10 * f21 - f20 * f11, f20 * f01 - f00 * f21, f00 * f11 - f10 * f01
+            c_hyd = (f00 * k00 + f10 * k10 + f20 * k20) - gamma
+        # node gradients: a = grad C_D, b = grad C_H, per axis, nodes 0..3
+        a0x, a1x, a2x, a3x = _gradient_row(e00, e01, e02, dm)
+        a0y, a1y, a2y, a3y = _gradient_row(e10, e11, e12, dm)
+        a0z, a1z, a2z, a3z = _gradient_row(e20, e21, e22, dm)
+        b0x, b1x, b2x, b3x = _gradient_row(k00, k01, k02, dm)
+        b0y, b1y, b2y, b3y = _gradient_row(k10, k11, k12, dm)
+        b0z, b1z, b2z, b3z = _gradient_row(k20, k21, k22, dm)
+        a_dd = a_dh = a_hh = 0.0
+        for w, ax, ay, az, bx, by, bz in (
+            (w0, a0x, a0y, a0z, b0x, b0y, b0z), (w1, a1x, a1y, a1z, b1x, b1y, b1z),
+            (w2, a2x, a2y, a2z, b2x, b2y, b2z), (w3, a3x, a3y, a3z, b3x, b3y, b3z),
+        ):  # fmt: skip
+            dd, dh, hh = _gram(w, ax, ay, az, bx, by, bz)
+            a_dd += dd
+            a_dh += dh
+            a_hh += hh
         volume = tet_rest_volume[t]
-        d_dev, d_hyd = coupled_multiplier_update(
-            c_dev,
-            c_hyd,
-            grad,
-            w,
-            inv_dt2 / (mu * volume),
-            inv_dt2 / (lam * volume),
-            multiplier[t, 0],
-            multiplier[t, 1],
-        )
+        alpha_dev = inv_dt2 / (mu * volume)
+        alpha_hyd = inv_dt2 / (lam * volume)
+        b_dev = -c_dev - alpha_dev * multiplier[t, 0]
+        b_hyd = -c_hyd - alpha_hyd * multiplier[t, 1]
+        gram = max(a_dd * a_hh - a_dh * a_dh, 0.0)
+        det = gram + alpha_dev * a_hh + alpha_hyd * a_dd + alpha_dev * alpha_hyd
+        m_dd = a_dd + alpha_dev
+        m_hh = a_hh + alpha_hyd
+        if det > 1e-14 * m_dd * m_hh:
+            d_dev = (m_hh * b_dev - a_dh * b_hyd) / det
+            d_hyd = (m_dd * b_hyd - a_dh * b_dev) / det
+        elif m_dd > 0.0:
+            d_dev, d_hyd = b_dev / m_dd, 0.0
+        else:
+            d_dev, d_hyd = 0.0, 0.0
         multiplier[t, 0] += d_dev
         multiplier[t, 1] += d_hyd
-        for k in range(4):
-            if w[k] > 0.0:
-                p = nodes[k]
-                for i in range(3):
-                    q[p, i] += w[k] * (grad[0, k, i] * d_dev + grad[1, k, i] * d_hyd)
+        for p, w, ax, ay, az, bx, by, bz in (
+            (p0, w0, a0x, a0y, a0z, b0x, b0y, b0z), (p1, w1, a1x, a1y, a1z, b1x, b1y, b1z),
+            (p2, w2, a2x, a2y, a2z, b2x, b2y, b2z), (p3, w3, a3x, a3y, a3z, b3x, b3y, b3z),
+        ):  # fmt: skip
+            if w > 0.0:
+                q[p, 0] += w * (ax * d_dev + bx * d_hyd)
+                q[p, 1] += w * (ay * d_dev + by * d_hyd)
+                q[p, 2] += w * (az * d_dev + bz * d_hyd)
 
 
 @njit(cache=True)
