@@ -365,9 +365,39 @@ def test_wound_closure_advances_stitches_and_rewards_gap_reduction():
     gaps = np.linspace(0.003, 0.0015, 10)
     outcomes = [task.step(_obs(task.arc.point(-2.7), gap=g), np.zeros(6)) for g in gaps]
     assert math.fsum(o.terms["closure"] for o in outcomes) == pytest.approx(w.closure * 0.0015 / gap0, rel=1e-12)
-    assert [o.success for o in outcomes] == list(gaps <= 0.5 * gap0)  # closure_target 0.5
+    assert not any(o.success for o in outcomes)  # the gap closed (closure_target 0.5), the last stitch not made
     for o in outcomes:
         _assert_exact_sum(task, o)
+    p = task.arc.access_points
+    for k, point in enumerate(p):
+        out = task.step(_obs(point, gap=0.0015, **({"entries": [point]} if k % 2 == 0 else {"exits": [point]})),
+                        np.zeros(6))  # fmt: skip
+        assert out.success == (k == len(p) - 1)  # the last stitch's final exit, the gap closed: success
+    assert out.terms["success"] == w.success
+
+
+def test_wound_closure_gap_closed_by_pressing_is_no_success():
+    """A gap closed before the last stitch is made (the needle pressing a wound edge) is not a success."""
+    gap0 = 0.004
+    task = _task(WoundClosure, kind="wound", stitches=1, gap_rest=gap0)
+    task.reset(_obs(task.arc.point(-2.7), gap=gap0))
+    out = task.step(_obs(task.arc.point(-2.7), gap=0.1 * gap0, force=1.0), np.zeros(6))
+    assert not out.success and out.terms["success"] == 0.0
+
+
+@pytest.mark.parametrize("cls", [NeedleInsert, WoundClosure])
+def test_a_torn_tissue_is_no_success(cls):
+    """The step that completes the task while the tissue tears ends in failure, not success."""
+    gap0 = 0.004 if cls is WoundClosure else 0.0
+    task = _task(cls, kind="wound" if cls is WoundClosure else "pad", gap_rest=gap0)
+    task.reset(_obs(task.arc.point(-2.7), gap=gap0))
+    p = task.arc.access_points
+    for k, point in enumerate(p[:-1]):
+        task.step(_obs(point, gap=gap0, **({"entries": [point]} if k % 2 == 0 else {"exits": [point]})), np.zeros(6))
+    last = dict(exits=[p[-1]]) if len(p) % 2 == 0 else dict(entries=[p[-1]])
+    out = task.step(_obs(p[-1], gap=0.1 * gap0, thread=0.02, force=5.0, damaged=True, **last), np.zeros(6))
+    assert out.tear and not out.success and out.failed
+    assert out.terms["success"] == 0.0 and out.terms["failure"] == -task.reward.failure
 
 
 def test_task_state_round_trip():

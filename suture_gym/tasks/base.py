@@ -34,7 +34,7 @@ Reward terms (each reported as ``info["reward_<name>"]``; a task uses a subset, 
   stitch's exit (m) and ``T = plan.thread_target``, counted after the stitch's final exit.
 * ``closure``: ``w_closure (g - g') / g0``: the reduction of the mean wound gap ``g`` (m) this step relative to
   the gap at rest ``g0``.
-* ``success``: ``w_success`` once, on the step the task succeeds.
+* ``success``: ``w_success`` once, on the step the task succeeds (never with the tissue torn).
 * ``failure``: ``-w_failure`` once, on the step an episode ends in failure: the tip leaves the workspace, the
   tissue tears (with ``termination.end_on_tear``), the task can no longer succeed (``termination.end_on_miss``:
   a stitch of a task that needs every stitch on the plan was entered or exited farther than ``access_tolerance``
@@ -438,7 +438,7 @@ class Task(ABC):
         previous_gap, st.gap = st.gap, obs.wound_gap
         potential = st.potential
         self._advance_stitch()
-        success = self.success(obs)
+        success = self.success(obs) and not obs.damaged  # a torn tissue is no success, whatever else was done
         newly_succeeded = success and not st.succeeded
         st.succeeded = st.succeeded or success
         outside = bool(np.any(obs.tip_pos < self.workspace[0]) or np.any(obs.tip_pos > self.workspace[1]))
@@ -605,7 +605,8 @@ class Task(ABC):
     # ------------------------------------------------------------------------------------------------------
 
     def success(self, obs: Observables) -> bool:
-        """Whether the task is achieved: the goal test on the achieved and desired goals."""
+        """Whether the task is achieved: the goal test on the achieved and desired goals (a task may ask more, and
+        :meth:`_advance` never counts a step with the tissue torn)."""
         achieved = self.achieved_goal(obs)
         return bool(self.goal_reached(achieved[None, :], self.desired_goal()[None, :])[0])
 

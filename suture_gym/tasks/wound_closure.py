@@ -18,10 +18,13 @@ class WoundClosure(Task):
     ``plan.thread_target`` before the next becomes current; a stopper knot near the thread's tail
     (``suture.knot_tail``) holds it at the first entry, so pulling it draws the wound edges together.
 
-    Success: the mean wound gap at most ``plan.closure_target`` times its rest value. Start phases:
-    ``approach`` and ``first_bite`` (the first stitch made and its thread pulled through).
+    Success: every planned stitch made (the last one's final exit done) and the mean wound gap at most
+    ``plan.closure_target`` times its rest value (:meth:`success`). Start phases: ``approach`` and
+    ``first_bite`` (the first stitch made and its thread pulled through).
 
-    Goal (1,): ``[mean wound gap (m)]``; met when the achieved gap is at most the desired one.
+    Goal (1,): ``[mean wound gap (m)]``; met when the achieved gap is at most the desired one. The goal variant's
+    reward reads the gap alone (a relabelled goal carries no stitch count); its ``info["is_success"]`` is
+    :meth:`success`.
     """
 
     NAME = "wound_closure"
@@ -55,6 +58,14 @@ class WoundClosure(Task):
         (:func:`~suture_gym.sim.scenes.tent_rod`)."""
         tail = arcs[0].entry + np.array([0.0, -TAIL_OFFSET, 0.25 * TAIL_OFFSET])
         return tent_rod(suture, swage, tail, np.array([0.0, -1.0, 1.0]))
+
+    def success(self, obs: Observables) -> bool:
+        """The wound closed by the suture: the last planned stitch has its final exit and the mean gap is at most
+        ``closure_target`` times its rest value. The gap alone is not enough: a needle pressing on a wound edge
+        can close it with no stitch (on the abdominal wall with its fat at a third of the skin's modulus the
+        scripted surgeon's first bite did, at env step 120)."""
+        st = self.state
+        return st.stitch == len(self.arcs) - 1 and st.exited and super().success(obs)
 
     def achieved_goal(self, obs: Observables) -> np.ndarray:
         return np.array([obs.wound_gap])
