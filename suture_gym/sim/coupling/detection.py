@@ -359,12 +359,14 @@ def coupling_detect(
 def strand_distances(
     model: CouplingModel, state: CouplingState, work: CouplingWork, tissue_q: np.ndarray, strand_q: np.ndarray
 ) -> None:
-    """Broad phase and signed distances (module docstring, detection step 1): refit ``work``'s BVHs to
-    ``tissue_q`` (N, 3) m; strand nodes (``strand_q`` (M, 3) m) within ``broad_phase_margin`` of the tissue's
-    box get their signed distance, closest triangle and barycentrics in ``state``, the others ``+inf``, -1, 0."""
+    """Broad phase and signed distances (module docstring, detection step 1): refit ``work``'s surface BVH to
+    ``tissue_q`` (N, 3) m (and mark its tet BVH stale: :func:`~suture_gym.sim.coupling.paths.tip_events` refits it
+    when a path grows, the one detection step that reads it); strand nodes (``strand_q`` (M, 3) m) within
+    ``broad_phase_margin`` of the tissue's box get their signed distance, closest triangle and barycentrics in
+    ``state``, the others ``+inf``, -1, 0."""
     # No validation here: the solver checked tissue_q and the strand's positions finite just before detection.
     refit_bvh(work.surface.bvh, tissue_q, check_finite=False)
-    refit_bvh(work.tet_bvh, tissue_q, check_finite=False)
+    work.tet_bvh_stale = True
     surface = work.surface
     signed_distance_kernel(
         strand_q, model.params.broad_phase_margin, surface.bvh.tree, surface.tri_neighbors, surface.vertex_tri_start,

@@ -351,7 +351,8 @@ class CouplingWork:
 
     Attributes (M strand nodes, K = ``max_paths``, P = ``max_path_nodes``):
         surface: the model's :class:`~suture_gym.sim.collision.TriangleSurface` with its own BVH boxes, and
-            tet_bvh: its own copy of the model's tet BVH; every detection refits both to the tissue positions.
+            tet_bvh: its own copy of the model's tet BVH; every detection refits the surface's to the tissue
+            positions and marks this one stale (tet_bvh_stale), refitted when a path grows (the one reader).
         strand_q: ``(M, 3)`` strand node positions at detection, m; strand_q_start: ``(M, 3)`` at the start of
             the substep (filled by the solver).
         pathnode_q: ``(P, 3)`` path node positions at detection, m. pathnode_tangent: ``(P, 3)`` unit tangents.
@@ -399,6 +400,7 @@ class CouplingWork:
         p = model.params.max_path_nodes
         self.surface = replace(model.surface, bvh=_writable_boxes(model.surface.bvh))
         self.tet_bvh = _writable_boxes(model.tet_bvh)
+        self.tet_bvh_stale = True
         self.strand_q = np.zeros((m, 3))
         self.strand_q_start = np.zeros((m, 3))
         self.pathnode_q = np.zeros((p, 3))

@@ -8,6 +8,7 @@ import math
 import numpy as np
 from numba import njit
 
+from suture_gym.sim.bvh import refit_bvh
 from suture_gym.sim.collision import (
     locate_points,
     segment_crossings,
@@ -363,6 +364,9 @@ def tip_events(
     if not forward:
         return
     points = p_last + np.arange(1, count + 1)[:, None] / count * step
+    if work.tet_bvh_stale:  # refitted here, the detection's one reader of it (most substeps grow no path)
+        refit_bvh(work.tet_bvh, tissue_q, check_finite=False)
+        work.tet_bvh_stale = False
     tets, barys = locate_points(points, work.tet_bvh, tissue_q, tolerance=1e-6)
     append_path_nodes(state, model, tets, barys)
 
