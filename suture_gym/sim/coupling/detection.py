@@ -377,31 +377,48 @@ def strand_distances(
 def _wall_and_anchor_rows(model: CouplingModel, state: CouplingState, work: CouplingWork) -> None:
     """Wall rows for needle nodes inside a path with no row within the band of a rigid face, the tip's anchor
     row (unless it carries a node-access row or a path row), and every row's surface point (the closest point,
-    or the anchor)."""
-    nn = model.needle_node_count
-    tri = state.strand_tri[:nn]
-    band = model.params.resistance_eps + model.params.contact_margin
-    wall = (
-        (work.row_kind[:nn] == ROW_NONE)
-        & (state.strand_path[:nn] >= 0)
-        & (tri >= 0)
-        & (state.strand_sdist[:nn] > -band)
-    )
-    wall[wall] = model.tri_rigid[tri[wall]]
-    work.row_kind[:nn][wall] = ROW_WALL
-    work.row_tri[:nn][wall] = tri[wall]
-    if state.tip_anchor_tri >= 0 and work.row_kind[0] != ROW_PATH:
-        in_access = np.any((work.access_node[: work.access_count] == 0) & (work.access_weight[: work.access_count] > 0))
+    or the anchor) (:func:`_wall_and_anchor_kernel`)."""
+    _wall_and_anchor_kernel(
+        model.needle_node_count, model.params.resistance_eps + model.params.contact_margin, model.tri_rigid,
+        model.strand_sigma, model.params.tip_length, state.strand_tri, state.strand_path, state.strand_sdist,
+        state.strand_bary, int(state.tip_anchor_tri), bool(state.tip_anchor_inside), state.tip_anchor_bary,
+        int(state.tip_patch_count), work.access_node, work.access_weight, int(work.access_count), work.row_kind,
+        work.row_tri, work.row_bary,
+    )  # fmt: skip
+
+
+@njit(cache=True)
+def _wall_and_anchor_kernel(nn, band, tri_rigid, strand_sigma, tip_length, strand_tri, strand_path, strand_sdist,
+                            strand_bary, anchor_tri, anchor_inside, anchor_bary, patch_count, access_node,
+                            access_weight, access_count, row_kind, row_tri, row_bary):  # fmt: skip
+    """:func:`_wall_and_anchor_rows` over the ``nn`` needle nodes (one pass instead of a dozen numpy calls on
+    arrays of a few elements): a node with no row, inside a path (``strand_path >= 0``) and within ``band`` (m)
+    of a rigid face gets a ROW_WALL with it; the tip gets its anchor's row (ROW_EXIT from the inside, else
+    ROW_ANCHOR) unless it has a path row or is in a node-access row; an anchor with a contact patch takes the
+    contact rows of the nodes within ``tip_length`` (m) behind the point; ``row_bary`` gets the closest points,
+    the tip's the anchor's."""
+    for i in range(nn):
+        tri = strand_tri[i]
+        if row_kind[i] == ROW_NONE and strand_path[i] >= 0 and tri >= 0 and strand_sdist[i] > -band and tri_rigid[tri]:
+            row_kind[i] = ROW_WALL
+            row_tri[i] = tri
+    if anchor_tri >= 0 and row_kind[0] != ROW_PATH:
+        in_access = False
+        for a in range(access_count):
+            for k in range(access_node.shape[1]):
+                if access_node[a, k] == 0 and access_weight[a, k] > 0:
+                    in_access = True
         if not in_access:
-            work.row_kind[0] = ROW_EXIT if state.tip_anchor_inside else ROW_ANCHOR
-            work.row_tri[0] = state.tip_anchor_tri
-    if work.row_kind[0] == ROW_ANCHOR and state.tip_patch_count > 0:
+            row_kind[0] = ROW_EXIT if anchor_inside else ROW_ANCHOR
+            row_tri[0] = anchor_tri
+    if row_kind[0] == ROW_ANCHOR and patch_count > 0:
         # the tip-contact row stands for the whole taper: no rows of its own for the nodes behind the point
-        taper = (model.strand_sigma[1:nn] <= model.params.tip_length) & (work.row_kind[1:nn] == ROW_TRIANGLE)
-        work.row_kind[1:nn][taper] = ROW_NONE
-    work.row_bary[:] = state.strand_bary
-    if work.row_kind[0] == ROW_ANCHOR or work.row_kind[0] == ROW_EXIT:
-        work.row_bary[0] = state.tip_anchor_bary
+        for i in range(1, nn):
+            if strand_sigma[i] <= tip_length and row_kind[i] == ROW_TRIANGLE:
+                row_kind[i] = ROW_NONE
+    row_bary[:] = strand_bary
+    if row_kind[0] == ROW_ANCHOR or row_kind[0] == ROW_EXIT:
+        row_bary[0] = anchor_bary
 
 
 def _tip_patch_row(state: CouplingState, work: CouplingWork) -> None:
