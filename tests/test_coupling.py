@@ -860,3 +860,23 @@ def test_a_path_node_gets_its_friction_row_unless_a_static_obstacle_holds_it():
     assert tissue_w[1] == pytest.approx(2.0)
     assert cap[2] == 0.0 and gap[2] == obstacle_gap[2] and normal[2] == pytest.approx([0.0, 0.0, 1.0])
     assert cap[0] == 0.0 and gap[0] == obstacle_gap[0]
+
+
+def test_rigid_rows_take_each_nodes_first_rigid_crossing():
+    """Of a node's crossings only rigid faces count, the first by ``t`` (then triangle) wins, as in
+    segment_crossings' sorted order; the crossings arrive unsorted from the kernel."""
+    from suture_gym.sim.coupling.detection import _rigid_rows
+    from suture_gym.sim.coupling.params import ROW_NONE, ROW_TRIANGLE, ROW_WALL
+
+    tri_rigid = np.array([False, True, True, True])
+    segment = np.array([1, 1, 1, 0, 2, 1], np.int32)
+    tri = np.array([0, 3, 2, 1, 0, 1], np.int32)  # node 1: rigid 3 and 2 at t 0.5, rigid 1 at t 0.7; tri 0 soft
+    t = np.array([0.1, 0.5, 0.5, 0.9, 0.2, 0.7])
+    bary = np.arange(18, dtype=float).reshape(6, 3)
+    direction = np.array([-1, 1, 1, -1, 1, -1], np.int8)
+    row_kind = np.full(3, ROW_NONE, np.int8)
+    row_tri = np.full(3, -1, np.int32)
+    row_bary = np.zeros((3, 3))
+    _rigid_rows(6, segment, tri, bary, t, direction, tri_rigid, row_kind, row_tri, row_bary)
+    assert row_kind.tolist() == [ROW_TRIANGLE, ROW_WALL, ROW_NONE]  # node 2 crossed a soft face only
+    assert row_tri.tolist() == [1, 2, -1] and np.array_equal(row_bary[1], bary[2])

@@ -8,10 +8,9 @@ import numpy as np
 from numba import njit
 
 from suture_gym.sim.bvh import refit_bvh
-from suture_gym.sim.collision import segment_crossings
-from suture_gym.sim.collision_kernels import signed_distance_kernel
+from suture_gym.sim.collision_kernels import crossings_kernel, signed_distance_kernel
 from suture_gym.sim.coupling.constraints import node_surface_constraint, surface_normal
-from suture_gym.sim.coupling.model import CouplingModel, CouplingState, CouplingWork
+from suture_gym.sim.coupling.model import CouplingModel, CouplingState, CouplingWork, crossing_buffers
 from suture_gym.sim.coupling.params import (
     NODE_HEAD,
     NODE_IN,
@@ -288,17 +287,38 @@ def rigid_crossings(model: CouplingModel, work: CouplingWork, tissue_q, strand_q
     """Rigid supports (module docstring, detection step 7): a strand node whose motion this substep,
     ``strand_q_start -> strand_q``, crosses a rigid face gets a contact row with that face at the crossing
     point that keeps it on the side it came from (outside: ROW_TRIANGLE, inside: ROW_WALL), whatever row it
-    had; so neither a needle dragging the tissue down nor a tip cutting through it passes the base."""
-    hits = segment_crossings(strand_q_start, strand_q, work.surface, tissue_q, check_finite=False)
-    done = np.zeros(strand_q.shape[0], dtype=bool)
-    for h in np.flatnonzero(model.tri_rigid[hits.crossing_tri]):
-        i = hits.crossing_segment[h]
-        if done[i]:
+    had; so neither a needle dragging the tissue down nor a tip cutting through it passes the base. Of several
+    rigid crossings of one node the first (smallest ``t``, then triangle) counts, as in
+    :func:`~suture_gym.sim.collision.segment_crossings`' order. The crossings go to ``work.crossings`` (grown when
+    full), so a substep allocates nothing."""
+    tree = work.surface.bvh.tree
+    count = crossings_kernel(strand_q_start, strand_q, tree, tissue_q, *work.crossings)
+    if count > work.crossings[0].shape[0]:
+        work.crossings = crossing_buffers(count)
+        count = crossings_kernel(strand_q_start, strand_q, tree, tissue_q, *work.crossings)
+    if count:
+        _rigid_rows(count, *work.crossings, model.tri_rigid, work.row_kind, work.row_tri, work.row_bary)
+
+
+@njit(cache=True)
+def _rigid_rows(count, segment, tri, bary, t, direction, tri_rigid, row_kind, row_tri, row_bary):
+    """:func:`rigid_crossings`' rows from its first ``count`` crossings (``segment``, ``tri``, ``bary``, ``t``,
+    ``direction``: :func:`~suture_gym.sim.collision_kernels.crossings_kernel`'s outputs, unsorted)."""
+    first = np.full(row_kind.shape[0], -1, np.int64)
+    for h in range(count):
+        if not tri_rigid[tri[h]]:
             continue
-        done[i] = True
-        work.row_kind[i] = ROW_TRIANGLE if hits.crossing_direction[h] < 0 else ROW_WALL
-        work.row_tri[i] = hits.crossing_tri[h]
-        work.row_bary[i] = hits.crossing_bary[h]
+        i = segment[h]
+        b = first[i]
+        if b < 0 or t[h] < t[b] or (t[h] == t[b] and tri[h] < tri[b]):
+            first[i] = h
+    for i in range(row_kind.shape[0]):
+        h = first[i]
+        if h < 0:
+            continue
+        row_kind[i] = ROW_TRIANGLE if direction[h] < 0 else ROW_WALL
+        row_tri[i] = tri[h]
+        row_bary[i] = bary[h]
 
 
 def coupling_detect(

@@ -343,6 +343,13 @@ class CouplingState:
         return self.path_count > 0 and bool(self.path_open[self.path_count - 1])
 
 
+def crossing_buffers(capacity: int) -> tuple:
+    """Output buffers of :func:`~suture_gym.sim.collision_kernels.crossings_kernel` for ``capacity`` crossings:
+    ``(segment (C,) int32, triangle (C,) int32, bary (C, 3), t (C,), direction (C,) int8)``."""
+    return (np.empty(capacity, np.int32), np.empty(capacity, np.int32), np.empty((capacity, 3)), np.empty(capacity),
+            np.empty(capacity, np.int8))  # fmt: skip
+
+
 class CouplingWork:
     """Per-substep scratch: the constraint rows built by the detection and their multipliers.
 
@@ -353,6 +360,7 @@ class CouplingWork:
         surface: the model's :class:`~suture_gym.sim.collision.TriangleSurface` with its own BVH boxes, and
             tet_bvh: its own copy of the model's tet BVH; every detection refits the surface's to the tissue
             positions and marks this one stale (tet_bvh_stale), refitted when a path grows (the one reader).
+        crossings: the buffers of the rigid-support crossings (:func:`crossing_buffers`), grown when full.
         strand_q: ``(M, 3)`` strand node positions at detection, m; strand_q_start: ``(M, 3)`` at the start of
             the substep (filled by the solver).
         pathnode_q: ``(P, 3)`` path node positions at detection, m. pathnode_tangent: ``(P, 3)`` unit tangents.
@@ -401,6 +409,7 @@ class CouplingWork:
         self.surface = replace(model.surface, bvh=_writable_boxes(model.surface.bvh))
         self.tet_bvh = _writable_boxes(model.tet_bvh)
         self.tet_bvh_stale = True
+        self.crossings = crossing_buffers(max(16, 2 * m))
         self.strand_q = np.zeros((m, 3))
         self.strand_q_start = np.zeros((m, 3))
         self.pathnode_q = np.zeros((p, 3))
