@@ -146,21 +146,31 @@ def coupled_multiplier_update(
     Returns:
         ``(d_lambda_D, d_lambda_H)`` in J s^2.
     """
-    a_dd = 0.0
-    a_dh = 0.0
-    a_hh = 0.0
+    a_dd = a_dh = a_hh = 0.0
     for k in range(4):
-        gd0, gd1, gd2 = grad[0, k, 0], grad[0, k, 1], grad[0, k, 2]
-        gh0, gh1, gh2 = grad[1, k, 0], grad[1, k, 1], grad[1, k, 2]
-        a_dd += w[k] * (gd0 * gd0 + gd1 * gd1 + gd2 * gd2)
-        a_dh += w[k] * (gd0 * gh0 + gd1 * gh1 + gd2 * gh2)
-        a_hh += w[k] * (gh0 * gh0 + gh1 * gh1 + gh2 * gh2)
-    b_dev = -c_dev - alpha_tilde_dev * lambda_dev
-    b_hyd = -c_hyd - alpha_tilde_hyd * lambda_hyd
+        dd, dh, hh = _gram(w[k], grad[0, k, 0], grad[0, k, 1], grad[0, k, 2], grad[1, k, 0], grad[1, k, 1],
+                           grad[1, k, 2])  # fmt: skip
+        a_dd += dd
+        a_dh += dh
+        a_hh += hh
+    return _coupled_solve(a_dd, a_dh, a_hh, c_dev, c_hyd, alpha_tilde_dev, alpha_tilde_hyd, lambda_dev, lambda_hyd)
+
+
+@njit(cache=True, inline="always")
+def _gram(w, ax, ay, az, bx, by, bz):
+    """One node's terms ``w (a.a, a.b, b.b)`` of :func:`coupled_multiplier_update`'s matrix."""
+    return w * (ax * ax + ay * ay + az * az), w * (ax * bx + ay * by + az * bz), w * (bx * bx + by * by + bz * bz)
+
+
+@njit(cache=True, inline="always")
+def _coupled_solve(a_dd, a_dh, a_hh, c_dev, c_hyd, alpha_dev, alpha_hyd, lambda_dev, lambda_hyd):
+    """The 2x2 solve of :func:`coupled_multiplier_update` from its summed matrix terms ``a_dd, a_dh, a_hh``."""
+    b_dev = -c_dev - alpha_dev * lambda_dev
+    b_hyd = -c_hyd - alpha_hyd * lambda_hyd
     gram = max(a_dd * a_hh - a_dh * a_dh, 0.0)
-    det = gram + alpha_tilde_dev * a_hh + alpha_tilde_hyd * a_dd + alpha_tilde_dev * alpha_tilde_hyd
-    m_dd = a_dd + alpha_tilde_dev
-    m_hh = a_hh + alpha_tilde_hyd
+    det = gram + alpha_dev * a_hh + alpha_hyd * a_dd + alpha_dev * alpha_hyd
+    m_dd = a_dd + alpha_dev
+    m_hh = a_hh + alpha_hyd
     if det > 1e-14 * m_dd * m_hh:
         return (m_hh * b_dev - a_dh * b_hyd) / det, (m_dd * b_hyd - a_dh * b_dev) / det
     if m_dd > 0.0:
@@ -188,12 +198,6 @@ def _gradient_row(r0, r1, r2, dm):
     g2 = r0 * dm[1, 0] + r1 * dm[1, 1] + r2 * dm[1, 2]
     g3 = r0 * dm[2, 0] + r1 * dm[2, 1] + r2 * dm[2, 2]
     return -(0.0 + g1 + g2 + g3), g1, g2, g3
-
-
-@njit(cache=True, inline="always")
-def _gram(w, ax, ay, az, bx, by, bz):
-    """One node's terms ``w (a.a, a.b, b.b)`` of :func:`coupled_multiplier_update`'s matrix."""
-    return w * (ax * ax + ay * ay + az * az), w * (ax * bx + ay * by + az * bz), w * (bx * bx + by * by + bz * bz)
 
 
 @njit(cache=True)
@@ -280,21 +284,8 @@ def project_tets(
             a_dh += dh
             a_hh += hh
         volume = tet_rest_volume[t]
-        alpha_dev = inv_dt2 / (mu * volume)
-        alpha_hyd = inv_dt2 / (lam * volume)
-        b_dev = -c_dev - alpha_dev * multiplier[t, 0]
-        b_hyd = -c_hyd - alpha_hyd * multiplier[t, 1]
-        gram = max(a_dd * a_hh - a_dh * a_dh, 0.0)
-        det = gram + alpha_dev * a_hh + alpha_hyd * a_dd + alpha_dev * alpha_hyd
-        m_dd = a_dd + alpha_dev
-        m_hh = a_hh + alpha_hyd
-        if det > 1e-14 * m_dd * m_hh:
-            d_dev = (m_hh * b_dev - a_dh * b_hyd) / det
-            d_hyd = (m_dd * b_hyd - a_dh * b_dev) / det
-        elif m_dd > 0.0:
-            d_dev, d_hyd = b_dev / m_dd, 0.0
-        else:
-            d_dev, d_hyd = 0.0, 0.0
+        d_dev, d_hyd = _coupled_solve(a_dd, a_dh, a_hh, c_dev, c_hyd, inv_dt2 / (mu * volume), inv_dt2 / (lam * volume),
+                                      multiplier[t, 0], multiplier[t, 1])  # fmt: skip
         multiplier[t, 0] += d_dev
         multiplier[t, 1] += d_hyd
         for p, w, ax, ay, az, bx, by, bz in (
