@@ -195,6 +195,171 @@ def tet_stiffness(x: np.ndarray, dm_inv: np.ndarray, volume: float, mu: float, l
 
 
 @njit(cache=True)
+def tet_columns(tet_indices, tet_dm_inv, tet_rest_volume, tet_mu, tet_lambda, tets) -> tuple:
+    """The per-tet data :func:`potential_kernel` reads, one contiguous row per quantity over ``tets`` (A,):
+    ``(nodes (4, A) int64, data (12, A))``, ``data`` rows 0-8 ``Dm^-1[r, c]`` at ``3 r + c``, 9 the rest volume
+    (m^3), 10 ``mu`` and 11 ``lambda`` (Pa). Laid out so that the stress pass runs over consecutive tets in vector
+    registers."""
+    count = tets.shape[0]
+    nodes = np.empty((4, count), np.int64)
+    data = np.empty((12, count))
+    for n in range(count):
+        t = tets[n]
+        for k in range(4):
+            nodes[k, n] = tet_indices[t, k]
+        for r in range(3):
+            for c in range(3):
+                data[3 * r + c, n] = tet_dm_inv[t, r, c]
+        data[9, n] = tet_rest_volume[t]
+        data[10, n] = tet_mu[t]
+        data[11, n] = tet_lambda[t]
+    return nodes, data
+
+
+@njit(cache=True)
+def _edges(q, nodes, x):
+    """``x`` (9, A): each tet's edge vectors ``x_k - x_0`` (k = 1, 2, 3), rows ``a1 a2 a3 b1 b2 b3 c1 c2 c3`` for the
+    x, y and z components (``nodes`` (4, A) of :func:`tet_columns`)."""
+    for n in range(nodes.shape[1]):
+        n0, n1, n2, n3 = nodes[0, n], nodes[1, n], nodes[2, n], nodes[3, n]
+        for i in range(3):
+            base = q[n0, i]
+            x[3 * i, n] = q[n1, i] - base
+            x[3 * i + 1, n] = q[n2, i] - base
+            x[3 * i + 2, n] = q[n3, i] - base
+
+
+# error_model="numpy" below: a float division by zero gives inf instead of raising, so the loops carry no exception
+# branch and compile to vector instructions (mu / lambda is finite and non-zero).
+@njit(cache=True, inline="always", error_model="numpy")
+def _tet_state(x, data, n) -> tuple:
+    """Tet ``n``'s ``F`` (row by row), ``cof F``, ``V0 Psi(F)`` (J) and the stress scales ``V0 mu``, ``V0 lambda
+    (J - gamma)`` from its edges ``x`` (9, A) and ``data`` (12, A) of :func:`tet_columns`:
+    ``(f (9-tuple), k (9-tuple), energy, vm, vs)``."""
+    a1, a2, a3 = x[0, n], x[1, n], x[2, n]
+    b1, b2, b3 = x[3, n], x[4, n], x[5, n]
+    c1, c2, c3 = x[6, n], x[7, n], x[8, n]
+    d00, d01, d02 = data[0, n], data[1, n], data[2, n]
+    d10, d11, d12 = data[3, n], data[4, n], data[5, n]
+    d20, d21, d22 = data[6, n], data[7, n], data[8, n]
+    f00 = a1 * d00 + a2 * d10 + a3 * d20
+    f01 = a1 * d01 + a2 * d11 + a3 * d21
+    f02 = a1 * d02 + a2 * d12 + a3 * d22
+    f10 = b1 * d00 + b2 * d10 + b3 * d20
+    f11 = b1 * d01 + b2 * d11 + b3 * d21
+    f12 = b1 * d02 + b2 * d12 + b3 * d22
+    f20 = c1 * d00 + c2 * d10 + c3 * d20
+    f21 = c1 * d01 + c2 * d11 + c3 * d21
+    f22 = c1 * d02 + c2 * d12 + c3 * d22
+    # cof F: its columns are the cross products of F's columns (as _cofactor)
+    k00, k10, k20 = f11 * f22 - f21 * f12, f21 * f02 - f01 * f22, f01 * f12 - f11 * f02
+    k01, k11, k21 = f12 * f20 - f22 * f10, f22 * f00 - f02 * f20, f02 * f10 - f12 * f00
+    k02, k12, k22 = f10 * f21 - f20 * f11, f20 * f01 - f00 * f21, f00 * f11 - f10 * f01
+    det = f00 * k00 + f10 * k10 + f20 * k20
+    mu = data[10, n]
+    lam = data[11, n]
+    gamma = 1.0 + mu / lam
+    norm2 = f00 * f00 + f01 * f01 + f02 * f02 + f10 * f10 + f11 * f11 + f12 * f12 + f20 * f20 + f21 * f21
+    norm2 += f22 * f22
+    volume = data[9, n]
+    e = det - gamma
+    g = 1.0 - gamma
+    energy = volume * (0.5 * mu * (norm2 - 3.0) + 0.5 * lam * (e * e - g * g))
+    f = (f00, f01, f02, f10, f11, f12, f20, f21, f22)
+    k = (k00, k01, k02, k10, k11, k12, k20, k21, k22)
+    return f, k, energy, volume * mu, volume * lam * e
+
+
+@njit(cache=True, error_model="numpy")
+def _tet_energies(x, data, energy):
+    """``energy[n]`` (J): ``V0 Psi(F)`` of tet ``n`` from its edges ``x`` (9, A) and ``data`` of :func:`tet_columns`."""
+    for n in range(x.shape[1]):
+        energy[n] = _tet_state(x, data, n)[2]
+
+
+@njit(cache=True, inline="always", error_model="numpy")
+def _force_row(f, k, vm, vs, data, n, i, force):
+    """Rows ``3 i .. 3 i + 2`` of :func:`_tet_forces`' ``force`` at tet ``n``: component ``i`` of the force on
+    nodes 1..3, from :func:`_tet_state`'s ``f``, ``k``, ``vm``, ``vs``."""
+    p0 = vm * f[3 * i] + vs * k[3 * i]
+    p1 = vm * f[3 * i + 1] + vs * k[3 * i + 1]
+    p2 = vm * f[3 * i + 2] + vs * k[3 * i + 2]
+    force[3 * i, n] = p0 * data[0, n] + p1 * data[1, n] + p2 * data[2, n]
+    force[3 * i + 1, n] = p0 * data[3, n] + p1 * data[4, n] + p2 * data[5, n]
+    force[3 * i + 2, n] = p0 * data[6, n] + p1 * data[7, n] + p2 * data[8, n]
+
+
+@njit(cache=True, error_model="numpy")
+def _tet_forces(x, data, energy, force):
+    """:func:`_tet_energies` and each tet's elastic force ``V0 P Dm^-T`` (N) on its nodes 1..3 into ``force`` (9, A),
+    rows ``x1 x2 x3 y1 y2 y3 z1 z2 z3`` (node 0 takes minus their sum). Three passes, the energies with the x rows,
+    then the y rows, then the z rows: a loop storing more rows is left scalar by the compiler (too many output
+    streams to check for overlap), and recomputing ``F`` costs less than that."""
+    for n in range(x.shape[1]):
+        f, k, e, vm, vs = _tet_state(x, data, n)
+        energy[n] = e
+        _force_row(f, k, vm, vs, data, n, 0, force)
+    for n in range(x.shape[1]):
+        f, k, _, vm, vs = _tet_state(x, data, n)
+        _force_row(f, k, vm, vs, data, n, 1, force)
+    for n in range(x.shape[1]):
+        f, k, _, vm, vs = _tet_state(x, data, n)
+        _force_row(f, k, vm, vs, data, n, 2, force)
+
+
+@njit(cache=True)
+def potential_kernel(q, y, mass, free, inv_h2, columns, scratch, external, grad_out, with_gradient) -> float:
+    """:func:`incremental_potential` on the tets' data in columns (:func:`tet_columns`) with caller-owned
+    ``scratch = (x (9, A), energy (A,), force (9, A))``: three passes, the gather of the tets' edges, their stresses
+    (consecutive tets, no indirection: the pass the compiler vectorises) and the sums (the tets' energies in order,
+    their forces scattered onto the nodes), the same arithmetic in the same order as one pass tet by tet."""
+    nodes, data = columns
+    x, energy, force = scratch
+    _edges(q, nodes, x)
+    if with_gradient:
+        _tet_forces(x, data, energy, force)
+    else:
+        _tet_energies(x, data, energy)
+    total = 0.0
+    for p in range(q.shape[0]):
+        half_m = 0.5 * mass[p] * inv_h2
+        for i in range(3):
+            d = (q[p, i] - y[p, i]) * free[p, i]
+            total += half_m * d * d - external[p, i] * q[p, i]
+            if with_gradient:
+                grad_out[p, i] = (2.0 * half_m * d - external[p, i]) * free[p, i]
+    for n in range(energy.shape[0]):
+        total += energy[n]
+    if not with_gradient:
+        return total
+    for n in range(energy.shape[0]):
+        n0, n1, n2, n3 = nodes[0, n], nodes[1, n], nodes[2, n], nodes[3, n]
+        x1, x2, x3 = force[0, n], force[1, n], force[2, n]
+        y1, y2, y3 = force[3, n], force[4, n], force[5, n]
+        z1, z2, z3 = force[6, n], force[7, n], force[8, n]
+        grad_out[n1, 0] += x1
+        grad_out[n1, 1] += y1
+        grad_out[n1, 2] += z1
+        grad_out[n2, 0] += x2
+        grad_out[n2, 1] += y2
+        grad_out[n2, 2] += z2
+        grad_out[n3, 0] += x3
+        grad_out[n3, 1] += y3
+        grad_out[n3, 2] += z3
+        grad_out[n0, 0] -= x1 + x2 + x3
+        grad_out[n0, 1] -= y1 + y2 + y3
+        grad_out[n0, 2] -= z1 + z2 + z3
+    for p in range(q.shape[0]):  # held dofs took forces above: masked once here
+        for i in range(3):
+            grad_out[p, i] *= free[p, i]
+    return total
+
+
+def potential_scratch(tet_count: int) -> tuple:
+    """Scratch of :func:`potential_kernel` for ``tet_count`` tets."""
+    return np.empty((9, tet_count)), np.empty(tet_count), np.empty((9, tet_count))
+
+
 def incremental_potential(
     q: np.ndarray,
     y: np.ndarray,
@@ -213,8 +378,8 @@ def incremental_potential(
 ) -> float:
     """``Phi(x) - f_ext . x`` of the implicit-Euler substep and its gradient.
 
-    Written out per component (no 3x3 scratch arrays, masks as factors instead of branches): this kernel is the
-    implicit integrator's main cost besides the linear solve.
+    :class:`ImplicitTissue` keeps the tets' columns and the scratch and calls :func:`potential_kernel` itself; this
+    builds them for one call.
 
     Args:
         q: ``(N, 3)`` positions ``x``, m.
@@ -232,77 +397,9 @@ def incremental_potential(
     Returns:
         ``Phi - f_ext . x`` in J (elastic energy shifted to zero at rest, the inertia term, the external work).
     """
-    total = 0.0
-    for p in range(q.shape[0]):
-        half_m = 0.5 * mass[p] * inv_h2
-        for i in range(3):
-            d = (q[p, i] - y[p, i]) * free[p, i]
-            total += half_m * d * d - external[p, i] * q[p, i]
-            if with_gradient:
-                grad_out[p, i] = (2.0 * half_m * d - external[p, i]) * free[p, i]
-    for n in range(tets.shape[0]):
-        t = tets[n]
-        nodes = tet_indices[t]
-        n0 = nodes[0]
-        dm = tet_dm_inv[t]
-        # F = [x1 - x0, x2 - x0, x3 - x0] Dm^-1, row by row.
-        a1, a2, a3 = q[nodes[1], 0] - q[n0, 0], q[nodes[2], 0] - q[n0, 0], q[nodes[3], 0] - q[n0, 0]
-        b1, b2, b3 = q[nodes[1], 1] - q[n0, 1], q[nodes[2], 1] - q[n0, 1], q[nodes[3], 1] - q[n0, 1]
-        c1, c2, c3 = q[nodes[1], 2] - q[n0, 2], q[nodes[2], 2] - q[n0, 2], q[nodes[3], 2] - q[n0, 2]
-        f00 = a1 * dm[0, 0] + a2 * dm[1, 0] + a3 * dm[2, 0]
-        f01 = a1 * dm[0, 1] + a2 * dm[1, 1] + a3 * dm[2, 1]
-        f02 = a1 * dm[0, 2] + a2 * dm[1, 2] + a3 * dm[2, 2]
-        f10 = b1 * dm[0, 0] + b2 * dm[1, 0] + b3 * dm[2, 0]
-        f11 = b1 * dm[0, 1] + b2 * dm[1, 1] + b3 * dm[2, 1]
-        f12 = b1 * dm[0, 2] + b2 * dm[1, 2] + b3 * dm[2, 2]
-        f20 = c1 * dm[0, 0] + c2 * dm[1, 0] + c3 * dm[2, 0]
-        f21 = c1 * dm[0, 1] + c2 * dm[1, 1] + c3 * dm[2, 1]
-        f22 = c1 * dm[0, 2] + c2 * dm[1, 2] + c3 * dm[2, 2]
-        # cof F, as in _cofactor: its columns are the cross products of F's columns.
-        k00, k10, k20 = f11 * f22 - f21 * f12, f21 * f02 - f01 * f22, f01 * f12 - f11 * f02
-        k01, k11, k21 = f12 * f20 - f22 * f10, f22 * f00 - f02 * f20, f02 * f10 - f12 * f00
-        k02, k12, k22 = f10 * f21 - f20 * f11, f20 * f01 - f00 * f21, f00 * f11 - f10 * f01
-        det = f00 * k00 + f10 * k10 + f20 * k20
-        mu = tet_mu[t]
-        lam = tet_lambda[t]
-        gamma = 1.0 + mu / lam
-        norm2 = f00 * f00 + f01 * f01 + f02 * f02 + f10 * f10 + f11 * f11 + f12 * f12 + f20 * f20 + f21 * f21
-        norm2 += f22 * f22
-        volume = tet_rest_volume[t]
-        total += volume * (0.5 * mu * (norm2 - 3.0) + 0.5 * lam * ((det - gamma) ** 2 - (1.0 - gamma) ** 2))
-        if not with_gradient:
-            continue
-        # The elastic force V0 P Dm^-T on nodes 1..3 (node 0 takes minus their sum), all computed before the
-        # node-by-node stores: stores interleaved with the loads cost ~40% more.
-        vm = volume * mu
-        vs = volume * lam * (det - gamma)
-        d00, d01, d02 = dm[0, 0], dm[0, 1], dm[0, 2]
-        d10, d11, d12 = dm[1, 0], dm[1, 1], dm[1, 2]
-        d20, d21, d22 = dm[2, 0], dm[2, 1], dm[2, 2]
-        p0, p1, p2 = vm * f00 + vs * k00, vm * f01 + vs * k01, vm * f02 + vs * k02
-        x1, x2, x3 = p0 * d00 + p1 * d01 + p2 * d02, p0 * d10 + p1 * d11 + p2 * d12, p0 * d20 + p1 * d21 + p2 * d22
-        p0, p1, p2 = vm * f10 + vs * k10, vm * f11 + vs * k11, vm * f12 + vs * k12
-        y1, y2, y3 = p0 * d00 + p1 * d01 + p2 * d02, p0 * d10 + p1 * d11 + p2 * d12, p0 * d20 + p1 * d21 + p2 * d22
-        p0, p1, p2 = vm * f20 + vs * k20, vm * f21 + vs * k21, vm * f22 + vs * k22
-        z1, z2, z3 = p0 * d00 + p1 * d01 + p2 * d02, p0 * d10 + p1 * d11 + p2 * d12, p0 * d20 + p1 * d21 + p2 * d22
-        n1, n2, n3 = nodes[1], nodes[2], nodes[3]
-        grad_out[n1, 0] += x1
-        grad_out[n1, 1] += y1
-        grad_out[n1, 2] += z1
-        grad_out[n2, 0] += x2
-        grad_out[n2, 1] += y2
-        grad_out[n2, 2] += z2
-        grad_out[n3, 0] += x3
-        grad_out[n3, 1] += y3
-        grad_out[n3, 2] += z3
-        grad_out[n0, 0] -= x1 + x2 + x3
-        grad_out[n0, 1] -= y1 + y2 + y3
-        grad_out[n0, 2] -= z1 + z2 + z3
-    if with_gradient:  # held dofs took forces above: masked once here
-        for p in range(q.shape[0]):
-            for i in range(3):
-                grad_out[p, i] *= free[p, i]
-    return total
+    columns = tet_columns(tet_indices, tet_dm_inv, tet_rest_volume, tet_mu, tet_lambda, tets)
+    return potential_kernel(q, y, mass, free, inv_h2, columns, potential_scratch(tets.shape[0]), external, grad_out,
+                            with_gradient)  # fmt: skip
 
 
 @njit(cache=True)
@@ -736,6 +833,9 @@ class ImplicitTissue:
         self.free_mask = self.free.astype(np.float64)
         #: Tets with a free node, ascending: the only ones whose energy changes.
         self.active_tets = np.flatnonzero(self.free[tissue.tet_indices].any(axis=(1, 2))).astype(np.int32)
+        self._tet_columns = tet_columns(tissue.tet_indices, tissue.tet_dm_inv, tissue.tet_rest_volume, tissue.tet_mu,
+                                        tissue.tet_lambda, self.active_tets)  # fmt: skip
+        self._potential_scratch = potential_scratch(self.active_tets.size)
         self._free_particle = self.free.any(axis=1)
         self._free_grad = np.zeros(self.free_index.size)
         self.y = np.zeros((tissue.particle_count, 3))
@@ -775,9 +875,9 @@ class ImplicitTissue:
         earlier sweeps of this substep (:attr:`external`, N); writes its gradient into ``self.grad`` (N) unless
         ``with_gradient`` is False."""
         t = self.tissue
-        return incremental_potential(
-            q, self.y, t.particle_mass, self.free_mask, self.inv_h2, t.tet_indices, t.tet_dm_inv,
-            t.tet_rest_volume, t.tet_mu, t.tet_lambda, self.active_tets, self.external, self.grad, with_gradient,
+        return potential_kernel(
+            q, self.y, t.particle_mass, self.free_mask, self.inv_h2, self._tet_columns, self._potential_scratch,
+            self.external, self.grad, with_gradient,
         )  # fmt: skip
 
     def begin_rows(self, touched: np.ndarray) -> tuple:
