@@ -293,8 +293,9 @@ def _force_row(f, k, vm, vs, data, n, i, force):
 def _tet_forces(x, data, energy, force):
     """:func:`_tet_energies` and each tet's elastic force ``V0 P Dm^-T`` (N) on its nodes 1..3 into ``force`` (9, A),
     rows ``x1 x2 x3 y1 y2 y3 z1 z2 z3`` (node 0 takes minus their sum). Three passes, the energies with the x rows,
-    then the y rows, then the z rows: a loop storing more rows is left scalar by the compiler (too many output
-    streams to check for overlap), and recomputing ``F`` costs less than that."""
+    then the y rows, then the z rows: loops storing seven or ten rows compiled to scalar code (inspected in the
+    assembly; the compiler's overlap checks between so many output streams, presumably), and recomputing ``F``
+    costs less than that."""
     for n in range(x.shape[1]):
         f, k, e, vm, vs = _tet_state(x, data, n)
         energy[n] = e
