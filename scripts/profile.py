@@ -1,0 +1,78 @@
+"""Profile one benchmark of ``scripts/bench.py`` with Linux ``perf``, numba's compiled functions named.
+
+Usage::
+
+    python scripts/profile.py paper_abdominal_wall              # the 30 costliest symbols
+    python scripts/profile.py paper_cube --top 50 --out runs/cube.perf
+
+The benchmark runs twice in this process: once to compile everything, then under ``perf record`` attached to the
+process. A perf map (:mod:`suture_gym.measure.profiling`) then names the compiled code, so the report shows
+kernels and the helpers linked into them (``rod_solver.rod_iteration_kernel:...``) beside numba's runtime
+(``NRT_incref``, ``NRT_MemInfo_alloc_aligned``) and the interpreter. The map needs code compiled in this process,
+so numba compiles into an empty temporary cache (a minute or two; ``NUMBA_CACHE_DIR`` is ignored). Needs ``perf``
+(linux-tools) with permission to attach to one's own processes (``/proc/sys/kernel/perf_event_paranoid`` <= 2).
+"""
+
+from __future__ import annotations
+
+import argparse
+import os
+import shutil
+import signal
+import subprocess
+import sys
+import tempfile
+
+from _common import configure
+
+CACHE = tempfile.mkdtemp(prefix="suture_gym_profile_numba_")
+os.environ["NUMBA_CACHE_DIR"] = CACHE
+configure(threads=1)
+
+from suture_gym.measure import BENCHMARKS, load_all  # noqa: E402
+from suture_gym.measure.profiling import write_perf_map  # noqa: E402
+
+
+def main(argv: list[str] | None = None) -> int:
+    parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    parser.add_argument("benchmark", help="a name of scripts/bench.py --list")
+    parser.add_argument("--top", type=int, default=30, help="symbols to print (default 30)")
+    parser.add_argument("--out", default=None, help="keep the perf data here (default: a temporary file)")
+    args = parser.parse_args(argv)
+    if args.top < 1:
+        parser.error(f"--top must be >= 1, got {args.top}")
+    if shutil.which("perf") is None:
+        parser.error("perf is not installed (Debian/Ubuntu: the linux-tools or linux-perf package)")
+    load_all()
+    if args.benchmark not in BENCHMARKS:
+        parser.error(f"unknown benchmark {args.benchmark!r}; known: {sorted(BENCHMARKS)}")
+
+    out = args.out or os.path.join(CACHE, "perf.data")
+    try:
+        print(f"compiling ({args.benchmark}, first run) ...", file=sys.stderr)
+        BENCHMARKS[args.benchmark]()
+        record = subprocess.Popen(["perf", "record", "-q", "-F", "2000", "-p", str(os.getpid()), "-o", out],
+                                  stdout=subprocess.DEVNULL, stderr=subprocess.PIPE)  # fmt: skip
+        print(f"profiling ({args.benchmark}, second run) ...", file=sys.stderr)
+        try:
+            BENCHMARKS[args.benchmark]()
+        finally:
+            record.send_signal(signal.SIGINT)
+            _, err = record.communicate()
+        if record.returncode not in (0, -signal.SIGINT):
+            print(f"perf record failed ({record.returncode}): {err.decode(errors='replace').strip()}", file=sys.stderr)
+            return 1
+        path, count = write_perf_map()
+        print(f"perf map: {path} ({count} functions); data: {out}", file=sys.stderr)
+        report = subprocess.run(["perf", "report", "-i", out, "--stdio", "--no-children", "--sort", "symbol"],
+                                capture_output=True, text=True, check=True)  # fmt: skip
+        lines = [line for line in report.stdout.splitlines() if line.strip() and not line.startswith("#")]
+        print("\n".join(line.rstrip()[:160] for line in lines[: args.top]))
+    finally:
+        if args.out is None:
+            shutil.rmtree(CACHE, ignore_errors=True)
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())
