@@ -7,7 +7,8 @@ Usage::
 
 The benchmark runs twice in this process: once to compile everything, then under ``perf record`` attached to the
 process. A perf map (:mod:`suture_gym.measure.profiling`) then names the compiled code, so the report shows
-kernels and the helpers linked into them (``rod_solver.rod_iteration_kernel:...``) beside numba's runtime
+kernels and the helpers linked into them (``suture_gym.sim.rod_solver.guarded_inverse in
+rod_solver.solve_block_tridiagonal``) beside numba's runtime
 (``NRT_incref``, ``NRT_MemInfo_alloc_aligned``) and the interpreter. The map needs code compiled in this process,
 so numba compiles into an empty temporary cache (a minute or two; ``NUMBA_CACHE_DIR`` is ignored). Needs ``perf``
 (linux-tools) with permission to attach to one's own processes (``/proc/sys/kernel/perf_event_paranoid`` <= 2).
@@ -47,7 +48,7 @@ def main(argv: list[str] | None = None) -> int:
     if args.benchmark not in BENCHMARKS:
         parser.error(f"unknown benchmark {args.benchmark!r}; known: {sorted(BENCHMARKS)}")
 
-    out = args.out or os.path.join(CACHE, "perf.data")
+    out = os.path.abspath(args.out) if args.out else os.path.join(CACHE, "perf.data")
     try:
         print(f"compiling ({args.benchmark}, first run) ...", file=sys.stderr)
         BENCHMARKS[args.benchmark]()
@@ -63,14 +64,14 @@ def main(argv: list[str] | None = None) -> int:
             print(f"perf record failed ({record.returncode}): {err.decode(errors='replace').strip()}", file=sys.stderr)
             return 1
         path, count = write_perf_map()
-        print(f"perf map: {path} ({count} functions); data: {out}", file=sys.stderr)
+        kept = f"; data: {out}" if args.out else ""
+        print(f"perf map: {path} ({count} functions){kept}", file=sys.stderr)
         report = subprocess.run(["perf", "report", "-i", out, "--stdio", "--no-children", "--sort", "symbol"],
                                 capture_output=True, text=True, check=True)  # fmt: skip
         lines = [line for line in report.stdout.splitlines() if line.strip() and not line.startswith("#")]
         print("\n".join(line.rstrip()[:160] for line in lines[: args.top]))
-    finally:
-        if args.out is None:
-            shutil.rmtree(CACHE, ignore_errors=True)
+    finally:  # the compiled code and, without --out, the perf data
+        shutil.rmtree(CACHE, ignore_errors=True)
     return 0
 
 
