@@ -1,4 +1,4 @@
-"""The perf map that names numba's compiled code for ``scripts/profile.py``."""
+"""The perf map that names numba's compiled code for ``scripts/perf_profile.py``."""
 
 import os
 import subprocess
@@ -41,3 +41,13 @@ def test_perf_map_names_a_kernel_compiled_in_the_process(tmp_path):
     named = {int(line.split()[0], 16): line.split(maxsplit=2)[2] for line in lines}
     assert named[entry] == "suture_gym.sim.quat.quat_mul in quat.quat_mul"
     assert all(int(line.split()[1], 16) > 0 for line in lines)
+
+
+def test_no_script_shadows_a_standard_library_module():
+    """A script runs with ``scripts/`` first on ``sys.path``: a ``scripts/profile.py`` once replaced the standard
+    ``profile`` module for every script, and torch's ``import cProfile`` broke training."""
+    from pathlib import Path
+
+    scripts = Path(__file__).resolve().parents[1] / "scripts"
+    clashes = sorted(p.stem for p in scripts.glob("*.py") if p.stem in sys.stdlib_module_names)
+    assert clashes == []

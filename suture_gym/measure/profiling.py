@@ -1,10 +1,10 @@
-"""Names for numba's compiled code in a Linux ``perf`` profile (``scripts/profile.py``).
+"""Names for numba's compiled code in a Linux ``perf`` profile (``scripts/perf_profile.py``).
 
 ``perf`` finds no symbols in code compiled at run time; it reads them from ``/tmp/perf-<pid>.map``, one line
 ``<start hex> <size hex> <name>`` per function. :func:`perf_map_entries` lists every function of every compiled
 overload of the numba functions in ``suture_gym`` (their own code and what was inlined or linked into them), from
 the addresses of their LLVM modules' functions. A numba cache keeps object code, not those modules: only functions
-compiled in this process are listed (``scripts/profile.py`` compiles into an empty cache for that reason).
+compiled in this process are listed (``scripts/perf_profile.py`` compiles into an empty cache for that reason).
 """
 
 from __future__ import annotations

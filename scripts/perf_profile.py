@@ -2,8 +2,8 @@
 
 Usage::
 
-    python scripts/profile.py paper_abdominal_wall              # the 30 costliest symbols
-    python scripts/profile.py paper_cube --top 50 --out runs/cube.perf
+    python scripts/perf_profile.py paper_abdominal_wall              # the 30 costliest symbols
+    python scripts/perf_profile.py paper_cube --top 50 --out runs/cube.perf
 
 The benchmark runs twice in this process: once to compile everything, then under ``perf record`` attached to the
 process. A perf map (:mod:`suture_gym.measure.profiling`) then names the compiled code, so the report shows
