@@ -106,19 +106,33 @@ def quat_from_rotation_vector(theta):
     return quat_from_axis_angle(theta, angle)
 
 
+@njit(cache=True, inline="always")
+def _rotation_entries(w, x, y, z):
+    """The rotation matrix of the unit quaternion ``(w, x, y, z)``, row by row, as a tuple of nine."""
+    return (
+        1.0 - 2.0 * (y * y + z * z), 2.0 * (x * y - w * z), 2.0 * (x * z + w * y),
+        2.0 * (x * y + w * z), 1.0 - 2.0 * (x * x + z * z), 2.0 * (y * z - w * x),
+        2.0 * (x * z - w * y), 2.0 * (y * z + w * x), 1.0 - 2.0 * (x * x + y * y),
+    )  # fmt: skip
+
+
 @njit(cache=True)
 def quat_to_matrix_into(q, out):
     """Write the rotation matrix of unit quaternion ``q`` into ``out`` (3, 3) (no allocation)."""
-    w, x, y, z = q[0], q[1], q[2], q[3]
-    out[0, 0] = 1.0 - 2.0 * (y * y + z * z)
-    out[0, 1] = 2.0 * (x * y - w * z)
-    out[0, 2] = 2.0 * (x * z + w * y)
-    out[1, 0] = 2.0 * (x * y + w * z)
-    out[1, 1] = 1.0 - 2.0 * (x * x + z * z)
-    out[1, 2] = 2.0 * (y * z - w * x)
-    out[2, 0] = 2.0 * (x * z - w * y)
-    out[2, 1] = 2.0 * (y * z + w * x)
-    out[2, 2] = 1.0 - 2.0 * (x * x + y * y)
+    e = _rotation_entries(q[0], q[1], q[2], q[3])
+    out[0, 0], out[0, 1], out[0, 2] = e[0], e[1], e[2]
+    out[1, 0], out[1, 1], out[1, 2] = e[3], e[4], e[5]
+    out[2, 0], out[2, 1], out[2, 2] = e[6], e[7], e[8]
+
+
+@njit(cache=True, inline="always")
+def quat_to_matrix_row(quats, j, out, io):
+    """Write the rotation matrix of the unit quaternion ``quats[j]`` ((M, 4)) into ``out[io]`` ((K, 3, 3)), as
+    :func:`quat_to_matrix_into` does; indexed rather than given views, as :func:`quat_turn_row`."""
+    e = _rotation_entries(quats[j, 0], quats[j, 1], quats[j, 2], quats[j, 3])
+    out[io, 0, 0], out[io, 0, 1], out[io, 0, 2] = e[0], e[1], e[2]
+    out[io, 1, 0], out[io, 1, 1], out[io, 1, 2] = e[3], e[4], e[5]
+    out[io, 2, 0], out[io, 2, 1], out[io, 2, 2] = e[6], e[7], e[8]
 
 
 @njit(cache=True)
@@ -129,26 +143,41 @@ def quat_to_matrix(q):
     return r
 
 
-@njit(cache=True)
-def quat_turn_into(q, theta, out):
-    """Write ``normalize(exp(theta / 2) q)`` into ``out`` (4,): ``q`` (4,) turned by the world rotation vector
-    ``theta`` (3,) (rad), without allocating; ``out`` may be ``q`` itself."""
-    angle = np.sqrt(theta[0] * theta[0] + theta[1] * theta[1] + theta[2] * theta[2])
+@njit(cache=True, inline="always")
+def _turned(bw, bx, by, bz, tx, ty, tz):
+    """``normalize(exp(theta / 2) b)`` as a tuple (w, x, y, z), for ``b`` turned by the world rotation vector
+    ``theta = (tx, ty, tz)`` (rad); ``(1, 0, 0, 0)`` if the product vanishes."""
+    angle = np.sqrt(tx * tx + ty * ty + tz * tz)
     if angle < _TINY:
         aw, ax, ay, az = 1.0, 0.0, 0.0, 0.0
     else:
         s = np.sin(0.5 * angle) / angle
-        aw, ax, ay, az = np.cos(0.5 * angle), theta[0] * s, theta[1] * s, theta[2] * s
-    bw, bx, by, bz = q[0], q[1], q[2], q[3]
+        aw, ax, ay, az = np.cos(0.5 * angle), tx * s, ty * s, tz * s
     w = aw * bw - ax * bx - ay * by - az * bz
     x = aw * bx + ax * bw + ay * bz - az * by
     y = aw * by - ax * bz + ay * bw + az * bx
     z = aw * bz + ax * by - ay * bx + az * bw
     n = np.sqrt(w * w + x * x + y * y + z * z)
     if n < _TINY:
-        out[0], out[1], out[2], out[3] = 1.0, 0.0, 0.0, 0.0
-        return
-    out[0], out[1], out[2], out[3] = w / n, x / n, y / n, z / n
+        return 1.0, 0.0, 0.0, 0.0
+    return w / n, x / n, y / n, z / n
+
+
+@njit(cache=True)
+def quat_turn_into(q, theta, out):
+    """Write ``normalize(exp(theta / 2) q)`` into ``out`` (4,): ``q`` (4,) turned by the world rotation vector
+    ``theta`` (3,) (rad), without allocating; ``out`` may be ``q`` itself."""
+    out[0], out[1], out[2], out[3] = _turned(q[0], q[1], q[2], q[3], theta[0], theta[1], theta[2])
+
+
+@njit(cache=True, inline="always")
+def quat_turn_row(quats, j, tx, ty, tz):
+    """Turn row ``j`` of ``quats`` (M, 4) in place by the world rotation vector ``(tx, ty, tz)`` (rad), as
+    :func:`quat_turn_into` does. Indexed rather than given a row view: per segment and iteration, a view passed
+    to a separately compiled function costs atomic reference counting in and out."""
+    quats[j, 0], quats[j, 1], quats[j, 2], quats[j, 3] = _turned(
+        quats[j, 0], quats[j, 1], quats[j, 2], quats[j, 3], tx, ty, tz
+    )
 
 
 @njit(cache=True)

@@ -357,13 +357,14 @@ def rod_predict_kernel(node_inv_mass, gravity, node_force, damping, dt, node_pos
     """
     scale = 1.0 / (1.0 + dt * damping)
     for i in range(node_pos.shape[0]):
-        node_pos_prev[i] = node_pos[i]
         w = node_inv_mass[i]
-        if w == 0.0:
-            node_vel[i] = 0.0
-            continue
-        node_vel[i] = node_vel[i] * scale + dt * (gravity + w * node_force[i])
-        node_pos[i] += dt * node_vel[i]
+        for k in range(3):  # in scalars: a row expression allocates its temporaries, per node and substep
+            node_pos_prev[i, k] = node_pos[i, k]
+            if w == 0.0:
+                node_vel[i, k] = 0.0
+                continue
+            node_vel[i, k] = node_vel[i, k] * scale + dt * (gravity[k] + w * node_force[i, k])
+            node_pos[i, k] += dt * node_vel[i, k]
 
 
 @njit(cache=True)
@@ -381,22 +382,24 @@ def detect_contacts_kernel(
     """Closest obstacle of every free node: gap ``(x - p) . n - radius`` to planes and ``|x - c| - R - radius``
     to spheres. Writes the smallest gap (m; +inf if none or pinned) to ``contact_gap`` (N,) and its unit
     outward normal to ``contact_normal`` (N, 3)."""
-    for i in range(node_pos.shape[0]):
+    for i in range(node_pos.shape[0]):  # in scalars: no temporaries and no views, per node and iteration
         contact_gap[i] = np.inf
         if node_inv_mass[i] == 0.0:
             continue
+        x, y, z = node_pos[i, 0], node_pos[i, 1], node_pos[i, 2]
         for k in range(plane_point.shape[0]):
-            gap = dot3(node_pos[i] - plane_point[k], plane_normal[k]) - radius
+            nx, ny, nz = plane_normal[k, 0], plane_normal[k, 1], plane_normal[k, 2]
+            gap = (x - plane_point[k, 0]) * nx + (y - plane_point[k, 1]) * ny + (z - plane_point[k, 2]) * nz - radius
             if gap < contact_gap[i]:
                 contact_gap[i] = gap
-                contact_normal[i] = plane_normal[k]
+                contact_normal[i, 0], contact_normal[i, 1], contact_normal[i, 2] = nx, ny, nz
         for k in range(sphere_center.shape[0]):
-            d = node_pos[i] - sphere_center[k]
-            dist = np.sqrt(dot3(d, d))
+            dx, dy, dz = x - sphere_center[k, 0], y - sphere_center[k, 1], z - sphere_center[k, 2]
+            dist = np.sqrt(dx * dx + dy * dy + dz * dz)
             gap = dist - sphere_radius[k] - radius
             if dist > 0.0 and gap < contact_gap[i]:
                 contact_gap[i] = gap
-                contact_normal[i] = d / dist
+                contact_normal[i, 0], contact_normal[i, 1], contact_normal[i, 2] = dx / dist, dy / dist, dz / dist
 
 
 @njit(cache=True)

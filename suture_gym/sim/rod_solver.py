@@ -19,12 +19,14 @@ Kernels take their arrays in groups (tuples built once by :class:`~suture_gym.si
   ``+-contact_cap[i]`` where it is positive (:func:`_contact_rows`);
 * ``system``: ``RodWork.system``, ``(diag, lower, dinv (N, 7, 7), rhs, y, z (N, 7))``.
 
-The small helpers are compiled into their callers (``inline="always"``). They are called per block with views of
-the block arrays (``seg_rot[j]``, ``diag[b, :3, :3]``), and a view passed to a separate function has its reference
-counted in and out with atomic operations: ``perf`` put numba's reference counting at about a fifth of the
-abdominal-wall scene's run time. Inlined, an iteration on the paper's 200-node thread costs about 20% less, the
-same arithmetic bit for bit, for about 20 s more compilation on a cold cache. The block solve and
-:func:`guarded_inverse` stay separate functions (inlined as well: another ~10% for twice that compilation time).
+The small helpers are compiled into their callers (``inline="always"``) and take their arrays whole with an index
+(``seg_rot, j`` rather than ``seg_rot[j]``; a block of ``diag`` by its index and row and column offsets): numba
+counts the reference of every view it makes in and out with atomic operations, and ``perf`` put that counting
+at about a fifth of the abdominal-wall scene's run time when the helpers took views. The same arithmetic, bit for
+bit, with neither: an iteration on the paper's 200-node thread costs about a third less than with views passed
+to separately compiled helpers. :func:`guarded_inverse` is compiled into :func:`solve_block_tridiagonal` at its
+one call site; the block solve stays a separate function (compiling it into the iteration's two call sites
+doubles the compilation time for a few percent).
 """
 
 from __future__ import annotations
@@ -34,7 +36,14 @@ import math
 import numpy as np
 from numba import njit
 
-from suture_gym.sim.quat import cross3, quat_to_matrix, quat_to_matrix_into, quat_turn_into
+from suture_gym.sim.quat import (
+    cross3,
+    quat_to_matrix,
+    quat_to_matrix_into,
+    quat_to_matrix_row,
+    quat_turn_into,
+    quat_turn_row,
+)
 
 #: A pivot of the block solve below this fraction of its row's diagonal marks the row as redundant.
 _PIVOT_TOL = 1.0e-12
@@ -66,89 +75,99 @@ def dot3(a, b):
     return a[0] * b[0] + a[1] * b[1] + a[2] * b[2]
 
 
+# The helpers below take stacks of matrices and vectors with an index (``a, ia`` is the matrix ``a[ia]``, a local
+# one a stack of one) and write at row and column offsets, rather than views such as ``seg_rot[j]`` or
+# ``diag[b, :3, :3]``: numba counts a view's reference in and out with atomic operations, per block and iteration.
+
+
 @njit(cache=True, inline="always")
-def _ab_into(a, b, out):
-    """``out[:] = a @ b`` for (3, 3) matrices, by loops (no BLAS call, no allocation; the fixed bounds let them
-    compile unrolled)."""
+def _ab_into(a, ia, b, ib, out, io):
+    """``out[io] = a[ia] @ b[ib]`` for stacks of (3, 3) matrices, by loops (no BLAS call, no allocation; the fixed
+    bounds let them compile unrolled)."""
     for i in range(3):
         for j in range(3):
             t = 0.0
             for k in range(3):
-                t += a[i, k] * b[k, j]
-            out[i, j] = t
+                t += a[ia, i, k] * b[ib, k, j]
+            out[io, i, j] = t
 
 
 @njit(cache=True, inline="always")
-def _abt_acc(a, b, scale, out):
-    """``out += scale * a @ b.T`` for (3, 3) matrices, by loops."""
+def _abt_acc(a, ia, b, ib, scale, out, io, r0, c0):
+    """``out[io, r0:r0+3, c0:c0+3] += scale * a[ia] @ b[ib].T`` for stacks of (3, 3) matrices, by loops."""
     for i in range(3):
         for j in range(3):
             t = 0.0
             for k in range(3):
-                t += a[i, k] * b[j, k]
-            out[i, j] += scale * t
+                t += a[ia, i, k] * b[ib, j, k]
+            out[io, r0 + i, c0 + j] += scale * t
 
 
 @njit(cache=True, inline="always")
-def _mv_acc(a, v, scale, out):
-    """``out += scale * a @ v`` for a (3, 3) matrix."""
+def _mv_acc(a, ia, v, iv, scale, out, io):
+    """``out[io] += scale * a[ia] @ v[iv]`` for a stack of (3, 3) matrices and stacks of 3-vectors."""
     for i in range(3):
         t = 0.0
         for k in range(3):
-            t += a[i, k] * v[k]
-        out[i] += scale * t
+            t += a[ia, i, k] * v[iv, k]
+        out[io, i] += scale * t
 
 
 @njit(cache=True, inline="always")
-def _mtv_acc(a, v, scale, out):
-    """``out += scale * a.T @ v`` for a (3, 3) matrix."""
+def _mtv_acc(a, ia, v, iv, c0, scale, out, io):
+    """``out[io] += scale * a[ia].T @ v[iv, c0:c0+3]`` for a stack of (3, 3) matrices."""
     for k in range(3):
-        vk = scale * v[k]
+        vk = scale * v[iv, c0 + k]
         for i in range(3):
-            out[i] += a[k, i] * vk
+            out[io, i] += a[ia, k, i] * vk
 
 
 @njit(cache=True, inline="always")
-def _rot_diag_into(r, d, scale, out):
-    """``out[:] = scale * R diag(d) R^T`` (3, 3) for rotation ``r`` (3, 3) and diagonal ``d`` (3,)."""
+def _rot_diag_into(r, ir, d, idd, scale, out, io):
+    """``out[io] = scale * R diag(d) R^T`` (3, 3) for the rotation ``R = r[ir]`` and the diagonal ``d[idd]``."""
     for i in range(3):
         for j in range(3):
-            out[i, j] = scale * (r[i, 0] * d[0] * r[j, 0] + r[i, 1] * d[1] * r[j, 1] + r[i, 2] * d[2] * r[j, 2])
+            out[io, i, j] = scale * (
+                r[ir, i, 0] * d[idd, 0] * r[ir, j, 0]
+                + r[ir, i, 1] * d[idd, 1] * r[ir, j, 1]
+                + r[ir, i, 2] * d[idd, 2] * r[ir, j, 2]
+            )
 
 
 @njit(cache=True, inline="always")
-def _skew_into(x, y, z, out):
-    """Write ``[(x, y, z)]x`` into ``out`` (3, 3)."""
-    out[0, 0] = 0.0
-    out[0, 1] = -z
-    out[0, 2] = y
-    out[1, 0] = z
-    out[1, 1] = 0.0
-    out[1, 2] = -x
-    out[2, 0] = -y
-    out[2, 1] = x
-    out[2, 2] = 0.0
+def _skew_into(x, y, z, out, io):
+    """Write ``[(x, y, z)]x`` into ``out[io]`` (3, 3)."""
+    out[io, 0, 0] = 0.0
+    out[io, 0, 1] = -z
+    out[io, 0, 2] = y
+    out[io, 1, 0] = z
+    out[io, 1, 1] = 0.0
+    out[io, 1, 2] = -x
+    out[io, 2, 0] = -y
+    out[io, 2, 1] = x
+    out[io, 2, 2] = 0.0
 
 
 @njit(cache=True, inline="always")
-def inv_mass_times(rod, i, v, out):
-    """``out[:] = W_i v`` (3,): node ``i``'s inverse mass matrix ``w_i I + a_i t_i t_i^T`` (``rod`` group, module
-    docstring) times ``v`` (3,). With ``a_i = 0`` this is ``w_i v`` to the bit."""
-    w, a, t = rod[0][i], rod[6][i], rod[7][i]
-    at = a * (t[0] * v[0] + t[1] * v[1] + t[2] * v[2])
+def inv_mass_times(rod, i, v, iv, out, io):
+    """``out[io] = W_i v[iv]`` (3,): node ``i``'s inverse mass matrix ``w_i I + a_i t_i t_i^T`` (``rod`` group, module
+    docstring) times a vector. With ``a_i = 0`` this is ``w_i v`` to the bit."""
+    axis = rod[7]
+    w, a = rod[0][i], rod[6][i]
+    at = a * (axis[i, 0] * v[iv, 0] + axis[i, 1] * v[iv, 1] + axis[i, 2] * v[iv, 2])
     for k in range(3):
-        out[k] = w * v[k] + at * t[k]
+        out[io, k] = w * v[iv, k] + at * axis[i, k]
 
 
 @njit(cache=True, inline="always")
-def _add_axis_inv_mass(rod, i, scale, out):
-    """``out += scale * a_i t_i t_i^T`` (3, 3): the anisotropic part of node ``i``'s inverse mass."""
-    a, t = rod[6][i], rod[7][i]
+def _add_axis_inv_mass(rod, i, scale, out, io, r0, c0):
+    """``out[io, r0:r0+3, c0:c0+3] += scale * a_i t_i t_i^T``: the anisotropic part of node ``i``'s inverse mass."""
+    a, axis = rod[6][i], rod[7]
     if a == 0.0:
         return
     for k in range(3):
         for m in range(3):
-            out[k, m] += scale * a * t[k] * t[m]
+            out[io, r0 + k, c0 + m] += scale * a * axis[i, k] * axis[i, m]
 
 
 @njit(cache=True)
@@ -170,18 +189,21 @@ def stretch_shear_constraint(x0, x1, q, rest_length):
 def stretch_shear_jacobian(q):
     """``dC_ss / dtheta = [d3(q)]x`` (3, 3) for a world rotation vector ``dtheta`` applied to ``q``."""
     r = quat_to_matrix(q)
-    s = np.zeros((3, 3))
-    _skew_into(r[0, 2], r[1, 2], r[2, 2], s)
-    return s
+    s = np.zeros((1, 3, 3))
+    _skew_into(r[0, 2], r[1, 2], r[2, 2], s, 0)
+    return s[0]
 
 
 @njit(cache=True, inline="always")
-def _darboux(q0, q1):
-    """``r = conj(q0) q1`` as a tuple (w, x, y, z), sign chosen so that ``w >= 0`` (same rotation)."""
-    w = q0[0] * q1[0] + q0[1] * q1[1] + q0[2] * q1[2] + q0[3] * q1[3]
-    x = q0[0] * q1[1] - q0[1] * q1[0] - q0[2] * q1[3] + q0[3] * q1[2]
-    y = q0[0] * q1[2] + q0[1] * q1[3] - q0[2] * q1[0] - q0[3] * q1[1]
-    z = q0[0] * q1[3] - q0[1] * q1[2] + q0[2] * q1[1] - q0[3] * q1[0]
+def _darboux(quats, j0, j1):
+    """``r = conj(q0) q1`` of ``q0 = quats[j0]``, ``q1 = quats[j1]`` as a tuple (w, x, y, z), sign chosen so that
+    ``w >= 0`` (same rotation)."""
+    a0, a1, a2, a3 = quats[j0, 0], quats[j0, 1], quats[j0, 2], quats[j0, 3]
+    b0, b1, b2, b3 = quats[j1, 0], quats[j1, 1], quats[j1, 2], quats[j1, 3]
+    w = a0 * b0 + a1 * b1 + a2 * b2 + a3 * b3
+    x = a0 * b1 - a1 * b0 - a2 * b3 + a3 * b2
+    y = a0 * b2 + a1 * b3 - a2 * b0 - a3 * b1
+    z = a0 * b3 - a1 * b2 + a2 * b1 - a3 * b0
     if w < 0.0:
         return -w, -x, -y, -z
     return w, x, y, z
@@ -194,7 +216,10 @@ def bend_twist_constraint(q0, q1):
     ``C ~ (l/2) Omega`` with Omega the discrete Darboux vector (curvatures about d1, d2 and twist about d3);
     the sign of ``conj(q0) q1`` is chosen with a non-negative real part.
     """
-    _, x, y, z = _darboux(q0, q1)
+    quats = np.empty((2, 4))
+    quats[0] = q0
+    quats[1] = q1
+    _, x, y, z = _darboux(quats, 0, 1)
     out = np.empty(3)
     out[0] = x
     out[1] = y
@@ -203,14 +228,15 @@ def bend_twist_constraint(q0, q1):
 
 
 @njit(cache=True, inline="always")
-def _bend_twist_jacobian_into(q0, q1, r0, out):
-    """Write ``B = 1/2 (r_w I - [r_v]x) R0^T`` into ``out`` (3, 3); ``r0`` (3, 3) is ``R(q0)``."""
-    w, x, y, z = _darboux(q0, q1)
+def _bend_twist_jacobian_into(quats, j, rot, out, io):
+    """Write ``B = 1/2 (r_w I - [r_v]x) R0^T`` of ``q0 = quats[j]``, ``q1 = quats[j + 1]`` into ``out[io]`` (3, 3);
+    ``rot[j]`` (3, 3) is ``R(q0)``."""
+    w, x, y, z = _darboux(quats, j, j + 1)
     # the rows of r_w I - [r_v]x, without an allocation (this runs once per segment and iteration)
-    for j in range(3):
-        out[0, j] = 0.5 * (w * r0[j, 0] + z * r0[j, 1] + -y * r0[j, 2])
-        out[1, j] = 0.5 * (-z * r0[j, 0] + w * r0[j, 1] + x * r0[j, 2])
-        out[2, j] = 0.5 * (y * r0[j, 0] + -x * r0[j, 1] + w * r0[j, 2])
+    for k in range(3):
+        out[io, 0, k] = 0.5 * (w * rot[j, k, 0] + z * rot[j, k, 1] + -y * rot[j, k, 2])
+        out[io, 1, k] = 0.5 * (-z * rot[j, k, 0] + w * rot[j, k, 1] + x * rot[j, k, 2])
+        out[io, 2, k] = 0.5 * (y * rot[j, k, 0] + -x * rot[j, k, 1] + w * rot[j, k, 2])
 
 
 @njit(cache=True)
@@ -219,9 +245,14 @@ def bend_twist_jacobian(q0, q1):
 
     ``r = conj(q0) q1`` (sign as in :func:`bend_twist_constraint`), ``dtheta`` world rotation vectors.
     """
-    out = np.empty((3, 3))
-    _bend_twist_jacobian_into(q0, q1, quat_to_matrix(q0), out)
-    return out
+    quats = np.empty((2, 4))
+    quats[0] = q0
+    quats[1] = q1
+    rot = np.empty((1, 3, 3))
+    quat_to_matrix_into(q0, rot[0])
+    out = np.empty((1, 3, 3))
+    _bend_twist_jacobian_into(quats, 0, rot, out, 0)
+    return out[0]
 
 
 # ---------------------------------------------------------------------------------------------------------
@@ -229,7 +260,7 @@ def bend_twist_jacobian(q0, q1):
 # ---------------------------------------------------------------------------------------------------------
 
 
-@njit(cache=True)
+@njit(cache=True, inline="always")
 def guarded_inverse(a, lmat, d, out):
     """Inverse of a symmetric positive semi-definite :data:`BLOCK` x :data:`BLOCK` matrix ``a`` by LDL^T.
 
@@ -292,47 +323,53 @@ def solve_block_tridiagonal(diag, lower, rhs, dinv, y, z):
     schur = np.empty((k7, k7))
     tv = np.empty(k7)
     inverse = np.empty((k7, k7))
-    guarded_inverse(diag[0], lmat, dvec, dinv[0])
-    y[0] = rhs[0]
-    for b in range(1, nb):
-        # lfac = lower[b] dinv[b-1]: row 6 of lower[b] is zero, rows 3-5 use columns 3-5 only
-        for i in range(3):
+    for b in range(nb):
+        if b == 0:
+            for i in range(k7):
+                for j in range(k7):
+                    schur[i, j] = diag[0, i, j]
+                y[0, i] = rhs[0, i]
+        else:
+            # lfac = lower[b] dinv[b-1]: row 6 of lower[b] is zero, rows 3-5 use columns 3-5 only
+            for i in range(3):
+                for j in range(k7):
+                    t = 0.0
+                    for k in range(k7):
+                        t += lower[b, i, k] * dinv[b - 1, k, j]
+                    lfac[i, j] = t
+            for i in range(3, 6):
+                for j in range(k7):
+                    t = 0.0
+                    for k in range(3, 6):
+                        t += lower[b, i, k] * dinv[b - 1, k, j]
+                    lfac[i, j] = t
+            # schur = diag[b] - lfac lower[b]^T: column j of lower[b]^T is row j of lower[b]
+            for i in range(6):
+                for j in range(3):
+                    t = diag[b, i, j]
+                    for k in range(k7):
+                        t -= lfac[i, k] * lower[b, j, k]
+                    schur[i, j] = t
+                for j in range(3, 6):
+                    t = diag[b, i, j]
+                    for k in range(3, 6):
+                        t -= lfac[i, k] * lower[b, j, k]
+                    schur[i, j] = t
+                schur[i, 6] = diag[b, i, 6]
             for j in range(k7):
-                t = 0.0
+                schur[6, j] = diag[b, 6, j]
+            for i in range(6):
+                t = rhs[b, i]
                 for k in range(k7):
-                    t += lower[b, i, k] * dinv[b - 1, k, j]
-                lfac[i, j] = t
-        for i in range(3, 6):
-            for j in range(k7):
-                t = 0.0
-                for k in range(3, 6):
-                    t += lower[b, i, k] * dinv[b - 1, k, j]
-                lfac[i, j] = t
-        # schur = diag[b] - lfac lower[b]^T: column j of lower[b]^T is row j of lower[b]
-        for i in range(6):
-            for j in range(3):
-                t = diag[b, i, j]
-                for k in range(k7):
-                    t -= lfac[i, k] * lower[b, j, k]
-                schur[i, j] = t
-            for j in range(3, 6):
-                t = diag[b, i, j]
-                for k in range(3, 6):
-                    t -= lfac[i, k] * lower[b, j, k]
-                schur[i, j] = t
-            schur[i, 6] = diag[b, i, 6]
-        for j in range(k7):
-            schur[6, j] = diag[b, 6, j]
-        guarded_inverse(schur, lmat, dvec, inverse)  # into a local and copied: a view dinv[b] is two atomics
+                    t -= lfac[i, k] * y[b - 1, k]
+                y[b, i] = t
+            y[b, 6] = rhs[b, 6]
+        # one call site, so that the inlined inverse is compiled in once; into a local and copied, as a view
+        # dinv[b] passed on would count references
+        guarded_inverse(schur, lmat, dvec, inverse)
         for i in range(k7):
             for j in range(k7):
                 dinv[b, i, j] = inverse[i, j]
-        for i in range(6):
-            t = rhs[b, i]
-            for k in range(k7):
-                t -= lfac[i, k] * y[b - 1, k]
-            y[b, i] = t
-        y[b, 6] = rhs[b, 6]
     for i in range(k7):
         t = 0.0
         for k in range(k7):
@@ -359,7 +396,6 @@ def align_frames(node_pos, seg_inv_inertia, seg_quat):
 
     Clamped segments (zero inverse inertia) and zero-length edges are left alone. Updates ``seg_quat``.
     """
-    theta = np.empty(3)
     for j in range(seg_quat.shape[0]):
         if seg_inv_inertia[j, 0] == 0.0 and seg_inv_inertia[j, 1] == 0.0 and seg_inv_inertia[j, 2] == 0.0:
             continue
@@ -380,28 +416,31 @@ def align_frames(node_pos, seg_inv_inertia, seg_quat):
         if s < 1.0e-15:  # antiparallel: half turn about an axis perpendicular to d3
             ax, ay, az = (dz, 0.0, -dx) if abs(dy) > 0.5 else (-dy, dx, 0.0)
             an = np.sqrt(ax * ax + ay * ay + az * az)
-            theta[0], theta[1], theta[2] = np.pi * ax / an, np.pi * ay / an, np.pi * az / an
+            tx, ty, tz = np.pi * ax / an, np.pi * ay / an, np.pi * az / an
         else:
             angle = np.arctan2(s, c) / s
-            theta[0], theta[1], theta[2] = cx * angle, cy * angle, cz * angle
-        quat_turn_into(seg_quat[j], theta, seg_quat[j])
+            tx, ty, tz = cx * angle, cy * angle, cz * angle
+        quat_turn_row(seg_quat, j, tx, ty, tz)
 
 
 @njit(cache=True, inline="always")
-def _relative_rotation_vector(q, q0, out):
-    """Write the rotation vector (rad, world) of ``q conj(q0)`` into ``out`` (3,), the short way."""
-    w = q[0] * q0[0] + q[1] * q0[1] + q[2] * q0[2] + q[3] * q0[3]
-    x = -q[0] * q0[1] + q[1] * q0[0] - q[2] * q0[3] + q[3] * q0[2]
-    y = -q[0] * q0[2] + q[1] * q0[3] + q[2] * q0[0] - q[3] * q0[1]
-    z = -q[0] * q0[3] - q[1] * q0[2] + q[2] * q0[1] + q[3] * q0[0]
+def _relative_rotation_vector(quats, j, quats0, out, io):
+    """Write the rotation vector (rad, world) of ``q conj(q0)``, ``q = quats[j]``, ``q0 = quats0[j]``, into
+    ``out[io]`` (3,), the short way."""
+    q_0, q_1, q_2, q_3 = quats[j, 0], quats[j, 1], quats[j, 2], quats[j, 3]
+    p_0, p_1, p_2, p_3 = quats0[j, 0], quats0[j, 1], quats0[j, 2], quats0[j, 3]
+    w = q_0 * p_0 + q_1 * p_1 + q_2 * p_2 + q_3 * p_3
+    x = -q_0 * p_1 + q_1 * p_0 - q_2 * p_3 + q_3 * p_2
+    y = -q_0 * p_2 + q_1 * p_3 + q_2 * p_0 - q_3 * p_1
+    z = -q_0 * p_3 - q_1 * p_2 + q_2 * p_1 + q_3 * p_0
     if w < 0.0:
         w, x, y, z = -w, -x, -y, -z
     s = np.sqrt(x * x + y * y + z * z)
     if s < 1.0e-300:
-        out[0], out[1], out[2] = 0.0, 0.0, 0.0
+        out[io, 0], out[io, 1], out[io, 2] = 0.0, 0.0, 0.0
         return
     f = 2.0 * np.arctan2(s, w) / s
-    out[0], out[1], out[2] = x * f, y * f, z * f
+    out[io, 0], out[io, 1], out[io, 2] = x * f, y * f, z * f
 
 
 @njit(cache=True, inline="always")
@@ -450,28 +489,29 @@ def _frame_blocks(seg_quat, seg_inv_inertia, start, frames, lam, residual):
     seg_quat_start, seg_tension_prev = start
     seg_rot, seg_s, seg_winv, bend_b, seg_h = frames[:5]
     nseg = seg_quat.shape[0]
-    tmp = np.empty((3, 3))
-    inertia = np.empty(3)
-    winv_mod = np.empty(3)
-    g = np.empty(3)
-    dth = np.empty(3)
+    tmp = np.empty((1, 3, 3))
+    inertia = np.empty((1, 3))
+    winv_mod = np.empty((1, 3))
+    g = np.empty((1, 3))
+    dth = np.empty((1, 3))
     for j in range(nseg):
-        quat_to_matrix_into(seg_quat[j], seg_rot[j])
-        _skew_into(seg_rot[j, 0, 2], seg_rot[j, 1, 2], seg_rot[j, 2, 2], seg_s[j])
+        quat_to_matrix_row(seg_quat, j, seg_rot, j)
+        _skew_into(seg_rot[j, 0, 2], seg_rot[j, 1, 2], seg_rot[j, 2, 2], seg_s, j)
     for j in range(nseg - 1):
-        _bend_twist_jacobian_into(seg_quat[j], seg_quat[j + 1], seg_rot[j], bend_b[j])
+        _bend_twist_jacobian_into(seg_quat, j, seg_rot, bend_b, j)
     _frame_torque(lam, seg_s, bend_b, seg_h)
     for j in range(nseg):
-        rj = seg_rot[j]
         if not (seg_inv_inertia[j, 0] > 0.0 and seg_inv_inertia[j, 1] > 0.0 and seg_inv_inertia[j, 2] > 0.0):
-            seg_winv[j] = 0.0
-            seg_h[j] = 0.0
+            for i in range(3):
+                seg_h[j, i] = 0.0
+                for k in range(3):
+                    seg_winv[j, i, k] = 0.0
             continue
         stiff = max(np.sqrt(lam[j + 1, 0] ** 2 + lam[j + 1, 1] ** 2 + lam[j + 1, 2] ** 2), seg_tension_prev[j])
         for i in range(3):
-            inertia[i] = 1.0 / seg_inv_inertia[j, i]
-        winv_mod[0] = 1.0 / (inertia[0] + stiff)
-        winv_mod[1] = 1.0 / (inertia[1] + stiff)
+            inertia[0, i] = 1.0 / seg_inv_inertia[j, i]
+        winv_mod[0, 0] = 1.0 / (inertia[0, 0] + stiff)
+        winv_mod[0, 1] = 1.0 / (inertia[0, 1] + stiff)
         # twist: the bend-twist rows on either side, |lambda_bt| / 4 each (a row-sum bound on their lambda-weighted
         # Hessian: d^2 Im(conj(q0) q1) / dtheta^2 is -C/4 on a frame and at most 1/4 across the two frames)
         twist_stiff = 0.0
@@ -479,15 +519,16 @@ def _frame_blocks(seg_quat, seg_inv_inertia, start, frames, lam, residual):
             twist_stiff += 0.25 * np.sqrt(lam[j, 3] ** 2 + lam[j, 4] ** 2 + lam[j, 5] ** 2)
         if j < nseg - 1:
             twist_stiff += 0.25 * np.sqrt(lam[j + 1, 3] ** 2 + lam[j + 1, 4] ** 2 + lam[j + 1, 5] ** 2)
-        winv_mod[2] = 1.0 / (inertia[2] + twist_stiff)
-        _rot_diag_into(rj, winv_mod, 1.0, seg_winv[j])
-        _rot_diag_into(rj, inertia, 1.0, tmp)
-        _relative_rotation_vector(seg_quat[j], seg_quat_start[j], dth)
+        winv_mod[0, 2] = 1.0 / (inertia[0, 2] + twist_stiff)
+        _rot_diag_into(seg_rot, j, winv_mod, 0, 1.0, seg_winv, j)
+        _rot_diag_into(seg_rot, j, inertia, 0, 1.0, tmp, 0)
+        _relative_rotation_vector(seg_quat, j, seg_quat_start, dth, 0)
         for i in range(3):
-            g[i] = -seg_h[j, i]
-        _mv_acc(tmp, dth, 1.0, g)
-        seg_h[j] = 0.0
-        _mv_acc(seg_winv[j], g, 1.0, seg_h[j])
+            g[0, i] = -seg_h[j, i]
+        _mv_acc(tmp, 0, dth, 0, 1.0, g, 0)
+        for i in range(3):
+            seg_h[j, i] = 0.0
+        _mv_acc(seg_winv, j, g, 0, 1.0, seg_h, j)
         residual = max(residual, _FRAME_RESIDUAL_WEIGHT * max(abs(seg_h[j, 0]), abs(seg_h[j, 1]), abs(seg_h[j, 2])))
     return residual
 
@@ -500,24 +541,26 @@ def _attachment_block(node_pos, rod, needle, frames, system, needle_pos, needle_
     has_needle, needle_inv_mass, needle_inv_inertia_body, swage_body = needle
     att_r, att_winv = frames[5], frames[6]
     diag, rhs = system[0], system[3]
-    if has_needle:
-        tmp = np.empty((3, 3))
-        tmp2 = np.empty((3, 3))
-        rn = np.empty((3, 3))
-        quat_to_matrix_into(needle_quat, rn)
-        _ab_into(rn, needle_inv_inertia_body, tmp)
+    if has_needle:  # once per iteration: the helpers' stacks are made of the single arrays by reshaping
+        tmp = np.empty((1, 3, 3))
+        tmp2 = np.empty((1, 3, 3))
+        rn = np.empty((1, 3, 3))
+        quat_to_matrix_row(needle_quat.reshape(1, 4), 0, rn, 0)
+        winv = att_winv.reshape(1, 3, 3)
+        r = att_r.reshape(1, 3)
+        _ab_into(rn, 0, needle_inv_inertia_body.reshape(1, 3, 3), 0, tmp, 0)
         att_winv[:] = 0.0
-        _abt_acc(tmp, rn, 1.0, att_winv)
+        _abt_acc(tmp, 0, rn, 0, 1.0, winv, 0, 0, 0)
         att_r[:] = 0.0
-        _mv_acc(rn, swage_body, 1.0, att_r)
-        _skew_into(att_r[0], att_r[1], att_r[2], tmp2)
-        _ab_into(tmp2, att_winv, tmp)
-        _abt_acc(tmp, tmp2, 1.0, diag[0, :3, :3])
+        _mv_acc(rn, 0, swage_body.reshape(1, 3), 0, 1.0, r, 0)
+        _skew_into(att_r[0], att_r[1], att_r[2], tmp2, 0)
+        _ab_into(tmp2, 0, winv, 0, tmp, 0)
+        _abt_acc(tmp, 0, tmp2, 0, 1.0, diag, 0, 0, 0)
         for i in range(3):
             diag[0, i, i] += node_inv_mass[0] + needle_inv_mass
             rhs[0, i] = -(node_pos[0, i] - needle_pos[i] - att_r[i])
             residual = max(residual, abs(rhs[0, i]) / seg_rest_length[0])
-        _add_axis_inv_mass(rod, 0, 1.0, diag[0, :3, :3])
+        _add_axis_inv_mass(rod, 0, 1.0, diag, 0, 0, 0)
     else:
         for i in range(3):
             diag[0, i, i] = 1.0
@@ -535,33 +578,29 @@ def _segment_blocks(node_pos, seg_quat, rod, has_needle, frames, system, lam, dt
     diag, lower, _, rhs = system[:4]
     nseg = seg_quat.shape[0]
     inv_dt2 = 1.0 / (dt * dt)
-    tmp = np.empty((3, 3))
-    tmp2 = np.empty((3, 3))
-    tmp3 = np.empty((3, 3))
+    tmp = np.empty((1, 3, 3))
+    tmp2 = np.empty((1, 3, 3))
+    tmp3 = np.empty((1, 3, 3))
     for j in range(nseg):
         b = j + 1
         l = seg_rest_length[j]
-        s = seg_s[j]
-        winv = seg_winv[j]
-        rj = seg_rot[j]
-        # stretch-shear rows
-        _rot_diag_into(rj, seg_stretch_compliance[j], inv_dt2, tmp3)  # alpha~_ss, world frame
-        _ab_into(s, winv, tmp)  # tmp = [d3]x W_j
-        d_ss = diag[b, :3, :3]
-        _abt_acc(tmp, s, 1.0, d_ss)
+        # stretch-shear rows, into diag[b, :3, :3]
+        _rot_diag_into(seg_rot, j, seg_stretch_compliance, j, inv_dt2, tmp3, 0)  # alpha~_ss, world frame
+        _ab_into(seg_s, j, seg_winv, j, tmp, 0)  # tmp = [d3]x W_j
+        _abt_acc(tmp, 0, seg_s, j, 1.0, diag, b, 0, 0)
         w_sum = (node_inv_mass[j] + node_inv_mass[j + 1]) / (l * l)
         for i in range(3):
-            val = -((node_pos[j + 1, i] - node_pos[j, i]) / l - rj[i, 2])
+            val = -((node_pos[j + 1, i] - node_pos[j, i]) / l - seg_rot[j, i, 2])
             hterm = 0.0
-            d_ss[i, i] += w_sum
+            diag[b, i, i] += w_sum
             for k in range(3):
-                d_ss[i, k] += tmp3[i, k]
-                val -= tmp3[i, k] * lam[b, k]
-                hterm += s[i, k] * seg_h[j, k]
+                diag[b, i, k] += tmp3[0, i, k]
+                val -= tmp3[0, i, k] * lam[b, k]
+                hterm += seg_s[j, i, k] * seg_h[j, k]
             rhs[b, i] = val + hterm
             residual = max(residual, abs(val))
-        _add_axis_inv_mass(rod, j, 1.0 / (l * l), d_ss)
-        _add_axis_inv_mass(rod, j + 1, 1.0 / (l * l), d_ss)
+        _add_axis_inv_mass(rod, j, 1.0 / (l * l), diag, b, 0, 0)
+        _add_axis_inv_mass(rod, j + 1, 1.0 / (l * l), diag, b, 0, 0)
         if j < nseg - 1:
             residual = _bend_rows(j, seg_quat, bend_compliance, frames, diag, rhs, lam, inv_dt2, tmp, tmp2, tmp3,
                                   residual)  # fmt: skip
@@ -573,41 +612,39 @@ def _segment_blocks(node_pos, seg_quat, rod, has_needle, frames, system, lam, dt
             if has_needle:
                 for i in range(3):
                     lower[1, i, i] = -node_inv_mass[0] / l
-                _add_axis_inv_mass(rod, 0, -1.0 / l, lower[1, :3, :3])
+                _add_axis_inv_mass(rod, 0, -1.0 / l, lower, 1, 0, 0)
         else:
             lp = seg_rest_length[j - 1]
             for i in range(3):
                 lower[b, i, i] = -node_inv_mass[j] / (l * lp)
-            _add_axis_inv_mass(rod, j, -1.0 / (l * lp), lower[b, :3, :3])
-            bp = bend_b[j - 1]
-            _abt_acc(tmp, bp, 1.0, lower[b, :3, 3:6])
+            _add_axis_inv_mass(rod, j, -1.0 / (l * lp), lower, b, 0, 0)
+            _abt_acc(tmp, 0, bend_b, j - 1, 1.0, lower, b, 0, 3)
             if j < nseg - 1:
-                _ab_into(bend_b[j], winv, tmp2)
-                _abt_acc(tmp2, bp, -1.0, lower[b, 3:6, 3:6])
+                _ab_into(bend_b, j, seg_winv, j, tmp2, 0)
+                _abt_acc(tmp2, 0, bend_b, j - 1, -1.0, lower, b, 3, 3)
     return residual
 
 
 @njit(cache=True, inline="always")
 def _bend_rows(j, seg_quat, bend_compliance, frames, diag, rhs, lam, inv_dt2, tmp, tmp2, tmp3, residual):
-    """The bend-twist rows of segments j, j+1 in block j+1 (``tmp`` holds ``[d3_j]x W_j``; ``tmp2``, ``tmp3``
-    (3, 3) are scratch); returns ``residual`` raised to theirs."""
+    """The bend-twist rows of segments j, j+1 in block j+1 (``tmp`` (1, 3, 3) holds ``[d3_j]x W_j``; ``tmp2``,
+    ``tmp3`` (1, 3, 3) are scratch); returns ``residual`` raised to theirs."""
     seg_winv, bend_b, seg_h = frames[2], frames[3], frames[4]
     b = j + 1
-    bj = bend_b[j]
     for i in range(3):
         for k in range(3):
-            tmp2[i, k] = seg_winv[j, i, k] + seg_winv[j + 1, i, k]
-    _ab_into(bj, tmp2, tmp3)
-    _abt_acc(tmp3, bj, 1.0, diag[b, 3:6, 3:6])
-    _abt_acc(tmp, bj, -1.0, diag[b, :3, 3:6])
-    _, c_x, c_y, c_z = _darboux(seg_quat[j], seg_quat[j + 1])  # bend_twist_constraint, as scalars
+            tmp2[0, i, k] = seg_winv[j, i, k] + seg_winv[j + 1, i, k]
+    _ab_into(bend_b, j, tmp2, 0, tmp3, 0)
+    _abt_acc(tmp3, 0, bend_b, j, 1.0, diag, b, 3, 3)
+    _abt_acc(tmp, 0, bend_b, j, -1.0, diag, b, 0, 3)
+    _, c_x, c_y, c_z = _darboux(seg_quat, j, j + 1)  # bend_twist_constraint, as scalars
     for i in range(3):
         a_i = bend_compliance[j, i] * inv_dt2
         diag[b, 3 + i, 3 + i] += a_i
         val = -(c_x if i == 0 else c_y if i == 1 else c_z) - a_i * lam[b, 3 + i]
         hterm = 0.0
         for k in range(3):
-            hterm += bj[i, k] * (seg_h[j + 1, k] - seg_h[j, k])
+            hterm += bend_b[j, i, k] * (seg_h[j + 1, k] - seg_h[j, k])
             diag[b, 3 + i, k] = diag[b, k, 3 + i]
         rhs[b, 3 + i] = val + hterm
         residual = max(residual, abs(val))
@@ -626,7 +663,8 @@ def _contact_rows(rod, has_needle, contacts, system, lam, residual):
     diag, lower, _, rhs = system[:4]
     n = node_inv_mass.shape[0]
     nseg = n - 1
-    wn = np.empty(3)
+    wn = np.empty((1, 3))
+    axis = rod[7]
     for i in range(n):
         w = node_inv_mass[i]
         gap = contact_gap[i]
@@ -635,24 +673,23 @@ def _contact_rows(rod, has_needle, contacts, system, lam, residual):
         if not active:
             diag[i, 6, 6] = 1.0
             continue
-        nrm = contact_normal[i]
-        inv_mass_times(rod, i, nrm, wn)  # W_i n
-        tn = dot3(rod[7][i], nrm)
+        inv_mass_times(rod, i, contact_normal, i, wn, 0)  # W_i n
+        tn = axis[i, 0] * contact_normal[i, 0] + axis[i, 1] * contact_normal[i, 1] + axis[i, 2] * contact_normal[i, 2]
         diag[i, 6, 6] = w + rod[6][i] * tn * tn  # n^T W_i n
         rhs[i, 6] = -gap
         scale = seg_rest_length[i - 1] if i >= 1 else seg_rest_length[0]
         residual = max(residual, abs(gap) / scale)
         if i >= 1:  # stretch-shear of segment i-1 (same block): dC_ss/dx_i = I / l_{i-1}
             for k in range(3):
-                diag[i, 6, k] = wn[k] / seg_rest_length[i - 1]
+                diag[i, 6, k] = wn[0, k] / seg_rest_length[i - 1]
                 diag[i, k, 6] = diag[i, 6, k]
         elif has_needle:  # attachment: dC_att/dx_0 = I
             for k in range(3):
-                diag[0, 6, k] = wn[k]
+                diag[0, 6, k] = wn[0, k]
                 diag[0, k, 6] = diag[0, 6, k]
         if i < nseg:  # stretch-shear of segment i (next block): dC_ss/dx_i = -I / l_i
             for k in range(3):
-                lower[i + 1, k, 6] = -wn[k] / seg_rest_length[i]
+                lower[i + 1, k, 6] = -wn[0, k] / seg_rest_length[i]
     return residual
 
 
@@ -663,11 +700,11 @@ def _frame_torque(mult, seg_s, bend_b, out):
     nseg = out.shape[0]
     out[:] = 0.0
     for j in range(nseg):
-        _mtv_acc(seg_s[j], mult[j + 1, :3], 1.0, out[j])
+        _mtv_acc(seg_s, j, mult, j + 1, 0, 1.0, out, j)
         if j < nseg - 1:
-            _mtv_acc(bend_b[j], mult[j + 1, 3:6], -1.0, out[j])
+            _mtv_acc(bend_b, j, mult, j + 1, 3, -1.0, out, j)
         if j >= 1:
-            _mtv_acc(bend_b[j - 1], mult[j, 3:6], 1.0, out[j])
+            _mtv_acc(bend_b, j - 1, mult, j, 3, 1.0, out, j)
 
 
 @njit(cache=True, inline="always")
@@ -710,40 +747,42 @@ def apply_rod_solution(rod, needle, frames, contacts, z, lam, node_pos, seg_quat
     n = node_pos.shape[0]
     nseg = n - 1
     lam += z
-    impulse = np.empty(3)
-    step = np.empty(3)
+    contact_w = rod[5]
+    impulse = np.empty((1, 3))
+    step = np.empty((1, 3))
     for i in range(n):
         if node_inv_mass[i] == 0.0:
             continue
         for k in range(3):
-            impulse[k] = z[i, 6] * contact_normal[i, k]
-        inv_mass_times(rod, i, impulse, step)
+            impulse[0, k] = z[i, 6] * contact_normal[i, k]
+        inv_mass_times(rod, i, impulse, 0, step, 0)
         for k in range(3):
-            if contact_cap[i] == 0.0 and rod[5][i] == 0.0:  # pushes of static contacts: their Coulomb friction
-                contact_push[i, k] += step[k]
+            if contact_cap[i] == 0.0 and contact_w[i] == 0.0:  # pushes of static contacts: their Coulomb friction
+                contact_push[i, k] += step[0, k]
             if i == 0 and has_needle:
-                impulse[k] += z[0, k]
+                impulse[0, k] += z[0, k]
             if i >= 1:
-                impulse[k] += z[i, k] / seg_rest_length[i - 1]
+                impulse[0, k] += z[i, k] / seg_rest_length[i - 1]
             if i < nseg:
-                impulse[k] -= z[i + 1, k] / seg_rest_length[i]
-        inv_mass_times(rod, i, impulse, step)
+                impulse[0, k] -= z[i + 1, k] / seg_rest_length[i]
+        inv_mass_times(rod, i, impulse, 0, step, 0)
         for k in range(3):
-            node_pos[i, k] += step[k]
+            node_pos[i, k] += step[0, k]
     t = np.empty((nseg, 3))
     _frame_torque(z, seg_s, bend_b, t)
-    dtheta = np.empty(3)
+    dtheta = np.empty((1, 3))
     for j in range(nseg):
-        dtheta[:] = -seg_h[j]
-        _mv_acc(seg_winv[j], t[j], 1.0, dtheta)
-        if dtheta[0] != 0.0 or dtheta[1] != 0.0 or dtheta[2] != 0.0:  # clamped frames stay bit-exact
-            quat_turn_into(seg_quat[j], dtheta, seg_quat[j])
-    if has_needle:
+        for k in range(3):
+            dtheta[0, k] = -seg_h[j, k]
+        _mv_acc(seg_winv, j, t, j, 1.0, dtheta, 0)
+        if dtheta[0, 0] != 0.0 or dtheta[0, 1] != 0.0 or dtheta[0, 2] != 0.0:  # clamped frames stay bit-exact
+            quat_turn_row(seg_quat, j, dtheta[0, 0], dtheta[0, 1], dtheta[0, 2])
+    if has_needle:  # once per iteration
         p = -z[0, :3]
         needle_pos += needle_inv_mass * p
         dtheta[:] = 0.0
-        _mv_acc(att_winv, cross3(att_r, p), 1.0, dtheta)
-        quat_turn_into(needle_quat, dtheta, needle_quat)
+        _mv_acc(att_winv.reshape(1, 3, 3), 0, cross3(att_r, p).reshape(1, 3), 0, 1.0, dtheta, 0)
+        quat_turn_into(needle_quat, dtheta[0], needle_quat)
 
 
 @njit(cache=True)
