@@ -92,9 +92,12 @@ def apply_impulse(tissue, idx, weight, count, impulse, tissue_q) -> None:
     sum gains ``-b_a impulse`` at each. Updates ``tissue_q`` (N, 3) m."""
     w, slot, vertices, c, total = tissue
     if slot.shape[0] == 0:
-        for a in range(count):
-            tissue_q[idx[a]] -= w[idx[a]] * weight[a] * impulse
-            total[idx[a]] -= weight[a] * impulse
+        for a in range(count):  # in scalars: no row views or temporaries (reference counting) per vertex
+            v = idx[a]
+            f = w[v] * weight[a]
+            for i in range(3):
+                tissue_q[v, i] -= f * impulse[i]
+                total[v, i] -= weight[a] * impulse[i]
         return
     for a in range(count):
         sa = slot[idx[a]]
@@ -133,8 +136,11 @@ def move_point(tissue, idx, weight, dlam, n, tissue_q) -> None:
     otherwise. Updates ``tissue_q``."""
     if is_diagonal(tissue):
         w = tissue[0]
-        for a in range(idx.shape[0]):
-            tissue_q[idx[a]] -= w[idx[a]] * weight[a] * dlam * n
+        for a in range(idx.shape[0]):  # in scalars, as apply_impulse
+            v = idx[a]
+            f = w[v] * weight[a] * dlam
+            for i in range(3):
+                tissue_q[v, i] -= f * n[i]
         return
     apply_impulse(tissue, idx, weight, idx.shape[0], dlam * n, tissue_q)
 

@@ -101,20 +101,33 @@ def node_surface_constraint(q, p1, p2, p3, bary, normal, eps):
 
 @njit(cache=True)
 def tissue_point(tissue_q, idx, weight):
-    p = np.zeros(3)
-    for a in range(idx.shape[0]):
-        p += weight[a] * tissue_q[idx[a]]
+    """The embedded tissue point ``sum_a weight[a] tissue_q[idx[a]]`` (3,) m: a path node in its tet (four
+    barycentric weights) or a point of a surface triangle, from particle indices ``idx`` (K,) and weights (K,)."""
+    x = y = z = 0.0
+    for a in range(idx.shape[0]):  # in scalars: a row view and a temporary per term cost reference counting
+        w, v = weight[a], idx[a]
+        x += w * tissue_q[v, 0]
+        y += w * tissue_q[v, 1]
+        z += w * tissue_q[v, 2]
+    p = np.empty(3)
+    p[0], p[1], p[2] = x, y, z
     return p
 
 
 @njit(cache=True, inline="always")
 def _vertex_normal(v, tri_vertices, vertex_tri_start, vertex_tri_index, tissue_q):
     """Area-weighted normal (3,) of surface vertex ``v`` (sum of the cross products of its triangles, not unit)."""
-    n = np.zeros(3)
-    for s in range(vertex_tri_start[v], vertex_tri_start[v + 1]):
+    nx = ny = nz = 0.0
+    for s in range(vertex_tri_start[v], vertex_tri_start[v + 1]):  # in scalars: no views, no temporaries
         t = vertex_tri_index[s]
-        a = tissue_q[tri_vertices[t, 0]]
-        n += cross3(tissue_q[tri_vertices[t, 1]] - a, tissue_q[tri_vertices[t, 2]] - a)
+        a, b, c = tri_vertices[t, 0], tri_vertices[t, 1], tri_vertices[t, 2]
+        ux, uy, uz = tissue_q[b, 0] - tissue_q[a, 0], tissue_q[b, 1] - tissue_q[a, 1], tissue_q[b, 2] - tissue_q[a, 2]
+        wx, wy, wz = tissue_q[c, 0] - tissue_q[a, 0], tissue_q[c, 1] - tissue_q[a, 1], tissue_q[c, 2] - tissue_q[a, 2]
+        nx += uy * wz - uz * wy
+        ny += uz * wx - ux * wz
+        nz += ux * wy - uy * wx
+    n = np.empty(3)
+    n[0], n[1], n[2] = nx, ny, nz
     return n
 
 
