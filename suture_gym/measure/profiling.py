@@ -9,6 +9,7 @@ compiled in this process are listed (``scripts/perf_profile.py`` compiles into a
 
 from __future__ import annotations
 
+import bisect
 import os
 import re
 import sys
@@ -67,3 +68,36 @@ def write_perf_map(path: str | None = None, prefix: str = "suture_gym") -> tuple
             size = entries[k + 1][0] - address if k + 1 < len(entries) else 4096
             out.write(f"{address:x} {max(1, min(size, 1 << 20)):x} {name}\n")
     return path, len(entries)
+
+
+def sample_stack_tops(dump: str) -> list[tuple[int, int]]:
+    """``(ip, top)`` of each sample in ``perf report -D`` output of a recording made with ``--call-graph dwarf,N``:
+    the sampled instruction address and the first 8 bytes (little-endian) of the user stack copied with it, the
+    word at the stack pointer. For a leaf function that keeps no stack frame, such as numba's ``NRT_incref`` and
+    ``NRT_decref``, that word is its return address, inside the caller: compiled code has no unwind tables, so
+    ``perf`` itself cannot name the caller. Samples without a stack copy are skipped."""
+    tops = []
+    for block in re.split(r"\n(?=0x[0-9a-f]+@\S+ \[0x[0-9a-f]+\]: event: 9\b)", dump):
+        head = re.search(r"PERF_RECORD_SAMPLE\([^)]*\): \d+/\d+: 0x([0-9a-f]+)", block)
+        stack = re.search(r"ustack: size (\d+), offset 0x([0-9a-f]+)", block)
+        if head is None or stack is None or int(stack.group(1)) < 8:
+            continue
+        raw = bytearray()
+        for line in block.splitlines():
+            row = re.match(r"\.\s+[0-9a-f]{4}:\s+((?:[0-9a-f]{2} )+)", line)
+            if row is not None:
+                raw += bytes.fromhex(row.group(1).replace(" ", ""))
+        start = int(stack.group(2), 16) + 8  # the offset points at the copy's 8-byte size field
+        if len(raw) >= start + 8:
+            tops.append((int(head.group(1), 16), int.from_bytes(raw[start : start + 8], "little")))
+    return tops
+
+
+def name_at(entries: list[tuple[int, str]], address: int, limit: int = 1 << 20) -> str | None:
+    """The name of the :func:`perf_map_entries` function holding ``address`` (it runs to the next entry, at most
+    ``limit`` bytes), or ``None``."""
+    k = bisect.bisect_right([start for start, _ in entries], address) - 1
+    if k < 0:
+        return None
+    end = entries[k + 1][0] if k + 1 < len(entries) else entries[k][0] + 4096
+    return entries[k][1] if address < min(end, entries[k][0] + limit) else None
