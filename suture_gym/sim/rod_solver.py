@@ -23,10 +23,10 @@ The small helpers are compiled into their callers (``inline="always"``) and take
 (``seg_rot, j`` rather than ``seg_rot[j]``; a block of ``diag`` by its index and row and column offsets): numba
 counts the reference of every view it makes in and out with atomic operations, and ``perf`` put that counting
 at about a fifth of the abdominal-wall scene's run time when the helpers took views. The same arithmetic, bit for
-bit, with neither: an iteration on the paper's 200-node thread costs about a third less than with views passed
-to separately compiled helpers. :func:`guarded_inverse` is compiled into :func:`solve_block_tridiagonal` at its
-one call site; the block solve stays a separate function (compiling it into the iteration's two call sites
-doubles the compilation time for a few percent).
+bit, with neither (``scripts/bench.py``'s ``strands``, eight iterations a substep: 1.17-1.26 -> 1.09-1.13 ms).
+:func:`guarded_inverse` is compiled into :func:`solve_block_tridiagonal` at its one call site; the block solve
+stays a separate function (compiling it into the iteration's two call sites doubles the compilation time for a
+few percent).
 """
 
 from __future__ import annotations
