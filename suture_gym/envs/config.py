@@ -173,6 +173,9 @@ class SceneConfig(_Section):
     of an incision. ``layer_thickness`` and ``layer_stiffness`` make any scene layered by depth below its upper
     surface (:mod:`suture_gym.sim.layers`): layer ``k`` has Young's modulus ``layer_stiffness[k] *
     tissue.youngs_modulus`` (so randomisation scales every layer), the last one filling the rest.
+    ``wound_contact``: the wound's two faces are kept from passing through each other
+    (:func:`~suture_gym.sim.incision.with_wound_contact`): a needle pushing one face (a soft layer tenting at the
+    exit) pushes the other instead of crossing it.
     The scene's tets (five per cell, both bars of a wound; estimated for the hand; the file's for a mesh, counted
     when it is read) are refused above ``max_tets``, or when their estimated memory exceeds the machine's
     (:func:`~suture_gym.sim.mesh.check_tet_budget`), before anything is built.
@@ -190,9 +193,12 @@ class SceneConfig(_Section):
     incision: IncisionConfig = field(default_factory=IncisionConfig)
     layer_thickness: tuple[float, ...] = ()  # m, every layer's but the deepest, top first
     layer_stiffness: tuple[float, ...] = ()  # factors on tissue.youngs_modulus, one per layer (one more entry)
+    wound_contact: bool = False  # the wound's faces cannot pass through each other (wound scenes only)
 
     def validate(self, path: str) -> None:
         _choice(f"{path}.kind", self.kind, SCENE_KINDS)
+        if self.wound_contact and self.kind == "pad":
+            _fail(f"{path}.wound_contact", "needs a wound: scene.kind 'pad' has none")
         for k, v in enumerate(self.size):
             _real(f"{path}.size[{k}]", v, low=0.0, strict_low=True)
         _real(f"{path}.cell_size", self.cell_size, low=0.0, strict_low=True)

@@ -47,7 +47,7 @@ from suture_gym.envs.readout import coupling_mark, mean_gap, observables, subste
 from suture_gym.envs.registry import task_class
 from suture_gym.render.scene import RenderFrame
 from suture_gym.sim.anatomy import abdominal_wall, hand, resting_incised
-from suture_gym.sim.incision import Incision
+from suture_gym.sim.incision import Incision, with_wound_contact
 from suture_gym.sim.layers import layered
 from suture_gym.sim.mesh import check_tet_budget, points_inside
 from suture_gym.sim.mesh_io import SURFACE_FORMATS, read_tet_mesh, tetrahedralize_surface
@@ -247,6 +247,8 @@ class Simulation:
             built = layered(built, materials, scene.layer_thickness)
         if scene.kind == "pad":
             return built, empty, empty
+        if scene.wound_contact:
+            built = with_wound_contact(built)
         tissue = built.model.tissue
         left = built.regions["left_wound_face"]
         right = built.regions["right_wound_face"]

@@ -440,3 +440,91 @@ def _open(vertices, tets, left, right, front, incision: Incision, frames) -> np.
     if free.any():
         displacement[free] = spsolve(system.tocsc(), rhs).reshape(-1, 3)
     return vertices + displacement
+
+
+def wound_contact_pairs(
+    tissue, left: np.ndarray, right: np.ndarray, radius: float, front: np.ndarray | None = None
+) -> tuple[np.ndarray, np.ndarray]:
+    """The particle-triangle pairs of a wound's contact (``TissueModel.contact_vertex``, ``contact_face``): each
+    free particle of one wound face against the boundary triangles of the other face whose centroids lie within
+    ``radius`` (m) of it in the rest shape. A face's triangles are those with every corner on it or on the crack
+    front ``front`` (where an incision's faces meet; :class:`IncisedMesh` keeps it out of both faces), at least one
+    on it; the front's particles, and triangles touching a particle itself, are left out.
+
+    Args:
+        tissue: a :class:`~suture_gym.sim.model.TissueModel`.
+        left, right: particle indices (or ``(N,)`` bool masks) of the two wound faces (the scenes'
+            ``left_wound_face`` and ``right_wound_face`` regions).
+        radius: m; a particle is paired with the facing triangles it can reach: a few cells, more than the gap.
+        front: particle indices or mask of the crack front (the scenes' ``crack_front`` region); default none.
+
+    Returns:
+        ``(contact_vertex (P,) int32, contact_face (P,) int32)``, sorted by particle, then triangle.
+    """
+    if not radius > 0.0:
+        raise ValueError(f"wound_contact_pairs needs radius > 0, got {radius!r}")
+    n = tissue.particle_count
+    masks = []
+    for name, side in (("left", left), ("right", right), ("front", np.zeros(0, np.int64) if front is None else front)):
+        side = np.asarray(side)
+        mask = side.astype(bool) if side.dtype == bool else np.isin(np.arange(n), side)
+        if mask.shape != (n,):
+            raise ValueError(f"wound_contact_pairs: {name} must be a ({n},) mask or particle indices")
+        masks.append(mask)
+    crack = masks[2] | (masks[0] & masks[1])
+    tri = tissue.tri_indices
+    rest = tissue.particle_rest_q
+    vertices, faces = [], []
+    for own, other in ((masks[0] & ~crack, masks[1] & ~crack), (masks[1] & ~crack, masks[0] & ~crack)):
+        facing = np.flatnonzero((other | crack)[tri].all(axis=1) & other[tri].any(axis=1))
+        particles = np.flatnonzero(own & (tissue.particle_inv_mass > 0.0))
+        if not (facing.size and particles.size):
+            continue
+        near = cKDTree(rest[tri[facing]].mean(axis=1)).query_ball_point(rest[particles], radius)
+        for particle, hits in zip(particles, near, strict=True):
+            for f in facing[np.asarray(hits, dtype=np.int64)]:
+                if particle not in tri[f]:
+                    vertices.append(particle)
+                    faces.append(f)
+    order = np.lexsort((np.asarray(faces), np.asarray(vertices))) if vertices else np.zeros(0, np.int64)
+    return np.asarray(vertices, np.int32)[order], np.asarray(faces, np.int32)[order]
+
+
+def with_wound_contact(scene, radius: float | None = None, reach: float | None = None):
+    """The tissue ``scene`` (a :class:`~suture_gym.sim.scenes.Scene` without strands, with the regions
+    ``left_wound_face`` and ``right_wound_face``, and ``crack_front`` where it has one) with contact between its
+    wound's faces
+    (:func:`wound_contact_pairs`, :func:`~suture_gym.sim.tissue.project_face_contacts`): the same tissue, state,
+    regions and settings; the settings add ``wound_contact`` (pairs, radius, reach).
+
+    Args:
+        radius: m, how far apart (rest shape) a particle and a facing triangle are paired; default three mean
+            boundary edges plus the widest rest gap between the faces.
+        reach: m, ``TissueModel.contact_reach``; default one mean boundary edge.
+    """
+    from dataclasses import replace
+
+    from suture_gym.sim.model import State, TissueState
+    from suture_gym.sim.scenes import Scene
+
+    tissue = scene.model.tissue
+    if scene.model.needle is not None:
+        raise ValueError("with_wound_contact takes a tissue scene without strands")
+    missing = [name for name in ("left_wound_face", "right_wound_face") if name not in scene.regions]
+    if missing:
+        raise ValueError(f"with_wound_contact needs the scene's wound-face regions; missing {missing}")
+    left, right = scene.regions["left_wound_face"], scene.regions["right_wound_face"]
+    front = scene.regions.get("crack_front")
+    rest = tissue.particle_rest_q
+    tri = tissue.tri_indices
+    edge = float(np.linalg.norm(rest[tri] - rest[np.roll(tri, 1, axis=1)], axis=2).mean())
+    if radius is None:
+        widest = float(cKDTree(rest[right]).query(rest[left])[0].max()) if len(left) and len(right) else 0.0
+        radius = 3.0 * edge + widest
+    reach = edge if reach is None else reach
+    vertex, face = wound_contact_pairs(tissue, left, right, radius, front)
+    rebuilt = replace(tissue, contact_vertex=vertex, contact_face=face, contact_reach=reach)
+    state = State(tissue=TissueState.at_rest(rebuilt))
+    state.tissue.assign(scene.state.tissue)
+    settings = {**scene.settings, "wound_contact": {"pairs": int(vertex.size), "radius_m": radius, "reach_m": reach}}
+    return Scene(model=replace(scene.model, tissue=rebuilt), state=state, regions=scene.regions, settings=settings)

@@ -125,6 +125,14 @@ class TissueModel:
         support_normal: ``(S, 3) float64`` unit normals of rigid half-spaces the tissue rests on (the base of a
             pad): no free particle goes to ``n . x < d``; a one-sided, frictionless contact.
         support_offset: ``(S,) float64`` their offsets ``d``, m.
+        contact_vertex: ``(P,) int32`` with ``contact_face``: pairs of a particle and a boundary triangle (index
+            into ``tri_indices``) of the facing side of a wound, which the particle may not pass through
+            (:func:`~suture_gym.sim.tissue.project_face_contacts`; pairs from
+            :func:`~suture_gym.sim.incision.wound_contact_pairs`); empty (the default) for no contact between the
+            tissue's own faces.
+        contact_face: ``(P,) int32``, see ``contact_vertex``.
+        contact_reach: m, how far behind its facing triangle a paired particle is still pushed out (farther: the
+            pair is taken as not in contact, e.g. a face wrapped around the other).
     """
 
     particle_rest_q: np.ndarray
@@ -145,6 +153,9 @@ class TissueModel:
     roller_offset: np.ndarray
     support_normal: np.ndarray = field(default_factory=lambda: np.zeros((0, 3)))
     support_offset: np.ndarray = field(default_factory=lambda: np.zeros(0))
+    contact_vertex: np.ndarray = field(default_factory=lambda: np.zeros(0, np.int32))
+    contact_face: np.ndarray = field(default_factory=lambda: np.zeros(0, np.int32))
+    contact_reach: float = 0.0
 
     def __post_init__(self) -> None:
         """Store read-only C-contiguous copies after checking dtypes, shapes and index ranges.
@@ -167,6 +178,10 @@ class TissueModel:
             array, limit = getattr(self, name), sizes[bound]
             if array.size and (array.min() < 0 or array.max() >= limit):
                 raise ValueError(f"TissueModel.{name} holds indices outside 0..{limit - 1}")
+        if not (math.isfinite(self.contact_reach) and self.contact_reach >= 0.0):
+            raise ValueError(f"TissueModel.contact_reach must be finite and >= 0 m, got {self.contact_reach!r}")
+        if self.contact_vertex.size and not self.contact_reach > 0.0:
+            raise ValueError("TissueModel.contact_reach must be > 0 m when contact pairs are given")
         if not (np.all(np.isfinite(self.particle_inv_mass)) and np.all(self.particle_inv_mass >= 0)):
             raise ValueError("TissueModel.particle_inv_mass must be finite and >= 0")
         if not (np.all(self.tet_rest_volume > 0) and np.all(np.isfinite(self.tet_rest_volume))):
@@ -287,6 +302,8 @@ _TISSUE_FIELDS: dict[str, tuple[type, tuple]] = {
     "roller_offset": (np.float64, ("R",)),
     "support_normal": (np.float64, ("S", 3)),
     "support_offset": (np.float64, ("S",)),
+    "contact_vertex": (np.int32, ("P",)),
+    "contact_face": (np.int32, ("P",)),
 }
 
 #: Index fields and the dimension they index into.
@@ -296,6 +313,8 @@ _TISSUE_INDEX_BOUNDS = {
     "tri_indices": "N",
     "tri_tet": "T",
     "roller_particle": "N",
+    "contact_vertex": "N",
+    "contact_face": "F",
 }
 
 

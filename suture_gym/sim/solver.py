@@ -107,6 +107,7 @@ from suture_gym.sim.quat import quat_to_matrix
 from suture_gym.sim.rod import friction_kernel, rod_detect_contacts, rod_predict, rod_solve_iteration
 from suture_gym.sim.tissue import (
     XPBD_STABILITY_LIMIT,
+    project_face_contacts,
     project_rollers,
     project_supports,
     project_tets,
@@ -485,7 +486,9 @@ class Solver:
         (in NeedleInsert's random-action benchmark about two substeps in three have no row in contact).
 
         Every sweep ends with the tissue's rigid supports (:func:`~suture_gym.sim.tissue.project_supports`): the
-        base is a contact the rows and the elastic solve cannot push particles through."""
+        base is a contact the rows and the elastic solve cannot push particles through; then, where the model has
+        them, the contacts of a wound's faces with each other
+        (:func:`~suture_gym.sim.tissue.project_face_contacts`)."""
         tissue, tissue_state = model.tissue, state.tissue
         if self._implicit(model):
             if state.work.tissue_integrator(self.tissue_integrator, dt).sweeps_done:
@@ -519,6 +522,9 @@ class Solver:
         if tissue is not None and tissue.support_offset.size:
             project_supports(tissue.particle_inv_mass, tissue.support_normal, tissue.support_offset,
                              tissue_state.particle_q)  # fmt: skip
+        if tissue is not None and tissue.contact_vertex.size:
+            project_face_contacts(tissue.particle_inv_mass, tissue.tri_indices, tissue.contact_vertex,
+                                  tissue.contact_face, tissue.contact_reach, tissue_state.particle_q)  # fmt: skip
 
     def _project_implicit(self, model: Model, state: State, dt: float, first_sweep: bool, last_sweep: bool) -> None:
         """:meth:`_project` with an implicit tissue integrator (see there): the elastic solve, the coupling rows

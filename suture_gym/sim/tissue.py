@@ -446,6 +446,66 @@ def supports_violated(inv_mass: np.ndarray, normal: np.ndarray, offset: np.ndarr
 
 
 @njit(cache=True)
+def project_face_contacts(
+    inv_mass: np.ndarray,
+    tri_indices: np.ndarray,
+    contact_vertex: np.ndarray,
+    contact_face: np.ndarray,
+    reach: float,
+    q: np.ndarray,
+) -> int:
+    """One Gauss-Seidel pass of the tissue's contact with itself across a wound (``TissueModel.contact_vertex``,
+    ``contact_face``): particle ``v`` of a pair may not lie behind the boundary triangle ``f`` facing it, whose
+    outward normal ``n`` points into the wound. Where ``v``'s projection ``p = sum_k b_k x_k`` onto the triangle's
+    plane falls inside the triangle and ``v`` lies behind it, ``-reach < C < 0`` with ``C = (x_v - p) . n``, the
+    two are pushed apart along ``n`` with zero compliance (frictionless):
+    ``dlambda = -C / (w_v + sum_k b_k^2 w_k)``, ``x_v += w_v dlambda n``, ``x_k -= w_k b_k dlambda n``, which keeps
+    the mass-weighted mean position. A particle farther behind than ``reach`` (m) is not in contact with that
+    triangle (the faces wrapped around each other).
+
+    Args:
+        inv_mass: ``(N,)`` inverse masses, 1/kg. tri_indices: ``(F, 3)`` boundary triangles, counter-clockwise
+            seen from outside. contact_vertex, contact_face: ``(P,)`` the pairs. reach: m.
+        q: ``(N, 3)`` positions, m; projected in place.
+
+    Returns:
+        The number of pairs corrected.
+    """
+    corrected = 0
+    for k in range(contact_vertex.shape[0]):
+        v, f = contact_vertex[k], contact_face[k]
+        a, b, c = tri_indices[f, 0], tri_indices[f, 1], tri_indices[f, 2]
+        e1x, e1y, e1z = q[b, 0] - q[a, 0], q[b, 1] - q[a, 1], q[b, 2] - q[a, 2]
+        e2x, e2y, e2z = q[c, 0] - q[a, 0], q[c, 1] - q[a, 1], q[c, 2] - q[a, 2]
+        nx, ny, nz = e1y * e2z - e1z * e2y, e1z * e2x - e1x * e2z, e1x * e2y - e1y * e2x
+        area2 = math.sqrt(nx * nx + ny * ny + nz * nz)
+        if area2 <= 0.0:
+            continue
+        nx, ny, nz = nx / area2, ny / area2, nz / area2
+        dx, dy, dz = q[v, 0] - q[a, 0], q[v, 1] - q[a, 1], q[v, 2] - q[a, 2]
+        gap = dx * nx + dy * ny + dz * nz
+        if not (-reach < gap < 0.0):
+            continue
+        # barycentrics of the projection: areas of the sub-triangles over the whole (along n)
+        px, py, pz = dx - gap * nx, dy - gap * ny, dz - gap * nz
+        b1 = ((py * e2z - pz * e2y) * nx + (pz * e2x - px * e2z) * ny + (px * e2y - py * e2x) * nz) / area2
+        b2 = ((e1y * pz - e1z * py) * nx + (e1z * px - e1x * pz) * ny + (e1x * py - e1y * px) * nz) / area2
+        b0 = 1.0 - b1 - b2
+        if b0 < 0.0 or b1 < 0.0 or b2 < 0.0:
+            continue
+        w = inv_mass[v] + b0 * b0 * inv_mass[a] + b1 * b1 * inv_mass[b] + b2 * b2 * inv_mass[c]
+        if w <= 0.0:
+            continue
+        dlam = -gap / w
+        for node, s in ((v, inv_mass[v]), (a, -b0 * inv_mass[a]), (b, -b1 * inv_mass[b]), (c, -b2 * inv_mass[c])):
+            q[node, 0] += s * dlam * nx
+            q[node, 1] += s * dlam * ny
+            q[node, 2] += s * dlam * nz
+        corrected += 1
+    return corrected
+
+
+@njit(cache=True)
 def project_supports(inv_mass: np.ndarray, normal: np.ndarray, offset: np.ndarray, q: np.ndarray) -> None:
     """Rigid, frictionless, one-sided supports: every free particle with ``n . x < d`` is moved onto the plane
     (``x -= (n . x - d) n``); the support has infinite mass, so the whole correction goes to the particle.
