@@ -47,6 +47,16 @@ def test_a_particle_not_in_contact_is_left_alone(particle):
     np.testing.assert_array_equal(q, np.vstack([CORNERS, particle]))
 
 
+def test_a_particle_just_outside_an_edge_touches_the_nearest_point_of_the_triangle():
+    """Within FACE_CONTACT_EDGE of an edge (an incision's mirrored vertices meet corner to corner): the particle is
+    pushed out as from the nearest point in the triangle (barycentrics clamped), onto the plane."""
+    q, _, corrected = _project(np.array([-2e-5, 3e-4, -1e-4]))
+    assert corrected == 1
+    b = np.array([0.72, 0.0, 0.3]) / 1.02  # clamped from (0.72, -0.02, 0.3) into the triangle
+    assert q[3, 2] - (b @ q[:3])[2] == pytest.approx(0.0, abs=1e-15)
+    assert q[1, 2] == 0.0  # the corner with no weight is not moved
+
+
 def test_pinned_particles_take_no_correction():
     q, _, corrected = _project(np.array([2e-4, 3e-4, -1e-4]), inv_mass=(0.0, 0.0, 0.0, 1.0))
     assert corrected == 1

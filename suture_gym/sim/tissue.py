@@ -445,6 +445,13 @@ def supports_violated(inv_mass: np.ndarray, normal: np.ndarray, offset: np.ndarr
     return False
 
 
+#: How far outside a triangle (in barycentric units) a particle's projection may fall and still touch it: an
+#: incision's faces mirror each other vertex for vertex, so a particle pushed straight across meets the mirror
+#: vertex, where its projection lies exactly on the corners of the triangles around it (round-off puts it just
+#: outside each of them, and it passed between them).
+FACE_CONTACT_EDGE = 0.05
+
+
 @njit(cache=True)
 def project_face_contacts(
     inv_mass: np.ndarray,
@@ -456,9 +463,10 @@ def project_face_contacts(
 ) -> int:
     """One Gauss-Seidel pass of the tissue's contact with itself across a wound (``TissueModel.contact_vertex``,
     ``contact_face``): particle ``v`` of a pair may not lie behind the boundary triangle ``f`` facing it, whose
-    outward normal ``n`` points into the wound. Where ``v``'s projection ``p = sum_k b_k x_k`` onto the triangle's
-    plane falls inside the triangle and ``v`` lies behind it, ``-reach < C < 0`` with ``C = (x_v - p) . n``, the
-    two are pushed apart along ``n`` with zero compliance (frictionless):
+    outward normal ``n`` points into the wound. Where ``v``'s projection onto the triangle's plane falls inside
+    the triangle (or within :data:`FACE_CONTACT_EDGE` of it; ``b_k`` are then the barycentrics clamped into it)
+    and ``v`` lies behind it, ``-reach < C < 0`` with ``C = (x_v - p) . n`` and ``p = sum_k b_k x_k``, the two are
+    pushed apart along ``n`` with zero compliance (frictionless):
     ``dlambda = -C / (w_v + sum_k b_k^2 w_k)``, ``x_v += w_v dlambda n``, ``x_k -= w_k b_k dlambda n``, which keeps
     the mass-weighted mean position. A particle farther behind than ``reach`` (m) is not in contact with that
     triangle (the faces wrapped around each other).
@@ -491,8 +499,11 @@ def project_face_contacts(
         b1 = ((py * e2z - pz * e2y) * nx + (pz * e2x - px * e2z) * ny + (px * e2y - py * e2x) * nz) / area2
         b2 = ((e1y * pz - e1z * py) * nx + (e1z * px - e1x * pz) * ny + (e1x * py - e1y * px) * nz) / area2
         b0 = 1.0 - b1 - b2
-        if b0 < 0.0 or b1 < 0.0 or b2 < 0.0:
+        if b0 < -FACE_CONTACT_EDGE or b1 < -FACE_CONTACT_EDGE or b2 < -FACE_CONTACT_EDGE:
             continue
+        b0, b1, b2 = max(b0, 0.0), max(b1, 0.0), max(b2, 0.0)  # at an edge or corner: the nearest point in it
+        total = b0 + b1 + b2
+        b0, b1, b2 = b0 / total, b1 / total, b2 / total
         w = inv_mass[v] + b0 * b0 * inv_mass[a] + b1 * b1 * inv_mass[b] + b2 * b2 * inv_mass[c]
         if w <= 0.0:
             continue
