@@ -162,6 +162,12 @@ def _closest_on_triangles(p: np.ndarray, x: np.ndarray) -> np.ndarray:
     return np.where(inside[:, None], foot, best)
 
 
+def _mean_edge(vertices: np.ndarray, triangles: np.ndarray) -> float:
+    """Mean edge length (m) of the triangles ``(F, 3)`` over ``vertices`` ``(N, 3)`` (shared edges counted twice)."""
+    x = vertices[triangles]
+    return float(np.linalg.norm(x - np.roll(x, 1, axis=1), axis=2).mean())
+
+
 def _check_polyline(points: np.ndarray, tolerance: float) -> None:
     """ValueError for a repeated point, a turn sharper than :data:`MAX_TURN`, or two non-adjacent segments that
     come within ``tolerance`` (m) of each other (cross, allowing for chords of a curved surface)."""
@@ -257,9 +263,8 @@ def incise(mesh: TetMesh, incision: Incision, tolerance: float | None = None, al
     n = len(vertices)
     triangles = surface_triangles(tets)
     tri_x = vertices[triangles]
-    edge_lengths = np.linalg.norm(tri_x - np.roll(tri_x, 1, axis=1), axis=2)
     if tolerance is None:
-        tolerance = float(edge_lengths.mean())
+        tolerance = _mean_edge(vertices, triangles)
     elif not (np.isfinite(tolerance) and tolerance > 0):
         raise ValueError(f"tolerance must be a positive length in metres, got {tolerance!r}")
     points = incision.points
@@ -516,8 +521,7 @@ def with_wound_contact(scene, radius: float | None = None, reach: float | None =
     left, right = scene.regions["left_wound_face"], scene.regions["right_wound_face"]
     front = scene.regions.get("crack_front")
     rest = tissue.particle_rest_q
-    tri = tissue.tri_indices
-    edge = float(np.linalg.norm(rest[tri] - rest[np.roll(tri, 1, axis=1)], axis=2).mean())
+    edge = _mean_edge(rest, tissue.tri_indices)
     if radius is None:
         widest = float(cKDTree(rest[right]).query(rest[left])[0].max()) if len(left) and len(right) else 0.0
         radius = 3.0 * edge + widest
