@@ -8,6 +8,7 @@ import pytest
 from suture_gym.sim.mesh import box_tet_grid, rest_shape, signed_volumes
 from suture_gym.sim.model import TissueMaterial, TissueModel
 from suture_gym.sim.tissue import (
+    TET_BLOCK,
     coupled_multiplier_update,
     deformation_gradient,
     neo_hookean_constraints,
@@ -15,6 +16,7 @@ from suture_gym.sim.tissue import (
     project_rollers,
     project_supports,
     project_tets,
+    tet_blocks,
     tet_elastic_energy,
     tet_residual,
 )
@@ -223,19 +225,31 @@ def _helper_sweep(inv_mass, tets, dm_inv, volume, mu, lam, order, dt, q, multipl
                 q[nodes[k]] += w[k] * (grad[0, k] * d_dev + grad[1, k] * d_hyd)
 
 
+def _orders(model, kind):
+    """The colour order, or every tet (pinned ones too) in index order or reversed: consecutive tets that share
+    particles, which the sweep's blocks must then split."""
+    if kind == "colour":
+        return model.tet_color_order
+    natural = np.arange(model.tet_count, dtype=np.int32)
+    return natural if kind == "index" else natural[::-1].copy()
+
+
+@pytest.mark.parametrize("order", ["colour", "index", "reversed"])
 @pytest.mark.parametrize("nu", [0.3, 0.45, 0.5])
-def test_project_tets_is_its_helpers_bit_for_bit(nu):
-    """The written-out sweep equals the helpers' arithmetic exactly: a deformed, partly pinned, partly inverted mesh
-    with a collapsed tet and mixed moduli (layers), several sweeps with multipliers carried over."""
+def test_project_tets_is_its_helpers_bit_for_bit(nu, order):
+    """The blocked, vectorised sweep equals the helpers' arithmetic tet by tet exactly: a deformed, partly pinned,
+    partly inverted mesh with a collapsed tet and mixed moduli (layers), several sweeps with multipliers carried
+    over, in the colour order and in orders whose consecutive tets share particles."""
     mesh = box_tet_grid((0.03, 0.02, 0.02), (3, 2, 2))
     pinned = mesh.vertices[:, 0] == 0.0
+    pinned[mesh.tets[0]] = True  # a tet with four pinned nodes: skipped
     model = TissueModel.from_mesh(mesh, [TissueMaterial(poisson_ratio=nu), TissueMaterial(youngs_modulus=3e5)],
                                   pinned=pinned, tet_material=np.arange(len(mesh.tets)) % 2)  # fmt: skip
     rng = np.random.default_rng(3)
     q = np.array(model.particle_rest_q) + 4e-3 * rng.standard_normal((model.particle_count, 3))
     q[model.tet_indices[-1]] = q[model.tet_indices[-1, 0]]  # a tet collapsed to a point
     args = (model.particle_inv_mass, model.tet_indices, model.tet_dm_inv, model.tet_rest_volume, model.tet_mu,
-            model.tet_lambda, model.tet_color_order, 1e-3)  # fmt: skip
+            model.tet_lambda, _orders(model, order), 1e-3)  # fmt: skip
     assert (signed_volumes(q, model.tet_indices) < 0).any()
     q_ref, m_ref = q.copy(), np.zeros((model.tet_count, 2))
     m = m_ref.copy()
@@ -244,6 +258,34 @@ def test_project_tets_is_its_helpers_bit_for_bit(nu):
         _helper_sweep(*args, q_ref, m_ref)
     assert np.array_equal(q, q_ref) and np.array_equal(m, m_ref)
     assert not np.array_equal(q, model.particle_rest_q)
+
+
+@pytest.mark.parametrize("order", ["colour", "index", "reversed"])
+def test_tet_blocks_partition_the_order_into_independent_blocks(order):
+    """Every tet with a free node is in exactly one lane, in the order's sequence; a block's tets share no particle
+    and number at most TET_BLOCK; the colour order fills the blocks (only a colour's last block is partial)."""
+    mesh = box_tet_grid((0.04, 0.03, 0.02), (4, 3, 2))
+    pinned = mesh.vertices[:, 2] == 0.0
+    model = TissueModel.from_mesh(mesh, TissueMaterial(), pinned=pinned)
+    sequence = _orders(model, order)
+    blocks = tet_blocks(model.particle_inv_mass, model.tet_indices, model.tet_dm_inv, model.tet_rest_volume,
+                        model.tet_mu, model.tet_lambda, sequence)  # fmt: skip
+    active = sequence[model.particle_inv_mass[model.tet_indices[sequence]].sum(axis=1) > 0]
+    lanes = blocks.lanes
+    assert np.all((lanes >= 1) & (lanes <= TET_BLOCK))
+    taken = np.concatenate([blocks.tets[k, : lanes[k]] for k in range(lanes.size)])
+    assert np.array_equal(taken, active)
+    assert np.all(blocks.tets[np.arange(TET_BLOCK)[None, :] >= lanes[:, None]] == -1)
+    for k in range(lanes.size):
+        tets = blocks.tets[k, : lanes[k]]
+        nodes = model.tet_indices[tets]
+        assert np.array_equal(blocks.nodes[k, :, : lanes[k]], nodes.T)
+        assert np.unique(nodes).size == nodes.size
+    if order == "colour":
+        colour_sizes = np.diff(model.tet_color_offsets)
+        assert lanes.size <= np.sum(-(-colour_sizes // TET_BLOCK))
+    else:  # neighbours in index order share nodes: blocks end early, but each holds at least one tet
+        assert lanes.size > -(-active.size // TET_BLOCK)
 
 
 def test_repeated_sweeps_solve_the_xpbd_equations_and_conserve_momentum():

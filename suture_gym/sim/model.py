@@ -24,6 +24,7 @@ from suture_gym.sim.coupling.compliance import diagonal
 from suture_gym.sim.mesh import TetMesh, lumped_masses, rest_shape, surface_triangles
 from suture_gym.sim.needle import NeedleModel, NeedleState
 from suture_gym.sim.rod import RodModel, RodState, RodWork, StaticObstacles
+from suture_gym.sim.tissue import TetBlocks, tet_blocks
 from suture_gym.sim.tissue_implicit import ImplicitTissue, implicit_tissue
 
 #: Young's moduli (Pa) the simulator's checks cover (docs/tissue_integrator.md): 1 kPa to 1 MPa.
@@ -504,6 +505,16 @@ class Work:
         self.diagonal_compliance = None if model.tissue is None else diagonal(model.tissue.particle_inv_mass)
         self.compliance = self.diagonal_compliance
         self._tissue_integrator: ImplicitTissue | None = None
+        self._tet_blocks: TetBlocks | None = None
+
+    def tet_blocks(self) -> TetBlocks:
+        """The tissue's tets in the XPBD sweep's blocks (:func:`~suture_gym.sim.tissue.tet_blocks` of its colour
+        order), built on first use."""
+        if self._tet_blocks is None:
+            t = self.model.tissue
+            self._tet_blocks = tet_blocks(t.particle_inv_mass, t.tet_indices, t.tet_dm_inv, t.tet_rest_volume, t.tet_mu,
+                                          t.tet_lambda, t.tet_color_order)  # fmt: skip
+        return self._tet_blocks
 
     def tissue_integrator(self, kind: str, dt: float) -> ImplicitTissue:
         """The implicit tissue integrator ``kind`` for substep ``dt`` (s) of the model's tissue

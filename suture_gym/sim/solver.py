@@ -110,7 +110,7 @@ from suture_gym.sim.tissue import (
     project_face_contacts,
     project_rollers,
     project_supports,
-    project_tets,
+    project_tet_blocks,
     supports_violated,
     tet_residual,
     xpbd_stability_number,
@@ -496,18 +496,7 @@ class Solver:
             self._project_implicit(model, state, dt, first_sweep, last_sweep)
         else:
             if tissue is not None:
-                project_tets(
-                    tissue.particle_inv_mass,
-                    tissue.tet_indices,
-                    tissue.tet_dm_inv,
-                    tissue.tet_rest_volume,
-                    tissue.tet_mu,
-                    tissue.tet_lambda,
-                    tissue.tet_color_order,
-                    dt,
-                    tissue_state.particle_q,
-                    tissue_state.tet_multiplier,
-                )
+                project_tet_blocks(*state.work.tet_blocks(), dt, tissue_state.particle_q, tissue_state.tet_multiplier)
                 project_rollers(
                     tissue.particle_inv_mass,
                     tissue.roller_particle,
