@@ -5,6 +5,7 @@ import pytest
 
 from suture_gym.sim.coloring import color_constraints
 from suture_gym.sim.mesh import (
+    TetLocator,
     TetMesh,
     box_tet_grid,
     lumped_masses,
@@ -290,3 +291,25 @@ def test_coloring_greedy_is_minimal_on_a_chain():
 def test_coloring_rejects_bad_indices():
     with pytest.raises(ValueError, match="constraint 1 references a particle outside 0..2"):
         color_constraints(np.array([[0, 1], [1, 3]]), 3)
+
+
+def test_tet_locator_matches_barycentric_coordinates_of_every_tet():
+    """TetLocator.inside against each point's barycentric coordinates in every tet (brute force): random points
+    in and around a grid, the grid's vertices, edge midpoints and face centres (closed tets: on the boundary is
+    inside), and points just outside the box; repeated queries of one locator give the same answers."""
+    mesh = box_tet_grid((0.03, 0.02, 0.01), (3, 2, 2))
+    x = mesh.vertices[mesh.tets]
+    dm_inv = np.linalg.inv(np.stack([x[:, 1] - x[:, 0], x[:, 2] - x[:, 0], x[:, 3] - x[:, 0]], axis=2))
+    rng = np.random.default_rng(5)
+    boundary = np.concatenate([mesh.vertices, 0.5 * (x[:, 0] + x[:, 1]), x[:, 1:].mean(axis=1)])
+    outside = np.array([[-1e-6, 0.01, 0.005], [0.03 + 1e-6, 0.01, 0.005], [0.015, 0.01, 0.01 + 1e-6]])
+    points = np.concatenate([rng.uniform((-0.005, -0.005, -0.005), (0.035, 0.025, 0.015), (300, 3)), boundary,
+                             outside])  # fmt: skip
+    b = np.einsum("tij,ptj->pti", dm_inv, points[:, None, :] - x[None, :, 0])
+    expected = np.any((b >= -1e-12).all(axis=2) & (b.sum(axis=2) <= 1.0 + 1e-12), axis=1)
+    locator = TetLocator(mesh.vertices, mesh.tets)
+    found = locator.inside(points)
+    assert np.array_equal(found, expected)
+    assert found[300 : 300 + len(boundary)].all() and not found[-3:].any()
+    assert expected[:300].any() and not expected[:300].all()
+    assert np.array_equal(locator.inside(points[::-1]), expected[::-1])

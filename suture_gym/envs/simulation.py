@@ -49,7 +49,7 @@ from suture_gym.render.scene import RenderFrame
 from suture_gym.sim.anatomy import abdominal_wall, hand, resting_incised
 from suture_gym.sim.incision import Incision, with_wound_contact
 from suture_gym.sim.layers import layered
-from suture_gym.sim.mesh import check_tet_budget, points_inside
+from suture_gym.sim.mesh import TetLocator, check_tet_budget
 from suture_gym.sim.mesh_io import SURFACE_FORMATS, read_tet_mesh, tetrahedralize_surface
 from suture_gym.sim.model import Control, Model, State, TissueMaterial
 from suture_gym.sim.needle import (
@@ -288,10 +288,7 @@ class Simulation:
             return plan_stitches(cfg.scene.kind, cfg.scene.size, gap, radius, cfg.plan.center_height,
                                  cfg.plan.stitches)
         tissue = tissue_scene.model.tissue
-
-        def inside(points: np.ndarray) -> np.ndarray:
-            return points_inside(tissue.particle_rest_q, tissue.tet_indices, points)
-
+        inside = TetLocator(tissue.particle_rest_q, tissue.tet_indices).inside
         return plan_across_incision(np.array(tissue_scene.settings["incision"]["points_m"]), inside, radius,
                                     cfg.plan.center_height, cfg.plan.stitches)
 

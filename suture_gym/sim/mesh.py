@@ -485,30 +485,38 @@ def vertices_on_plane(vertices: np.ndarray, point, normal, tolerance: float = 1e
     return np.abs(distance) <= tolerance
 
 
-def points_inside(vertices: np.ndarray, tets: np.ndarray, points: np.ndarray, tolerance: float = 1e-12) -> np.ndarray:
-    """Whether each point lies in some tet (closed, barycentric coordinates >= ``-tolerance``): an exact and
-    deterministic inside test for a tet mesh (ray casting against its surface is neither at edges).
+class TetLocator:
+    """Which points lie in a tet mesh, for many queries: each tet's inverse edge matrix and a k-d tree of the tets'
+    centres are built once. The abdominal wall's and the hand's stitch planner asks about 85 times a reset;
+    building these per query was 70% of a reset on the hand (1.2 s).
 
     Args:
-        vertices: ``(N, 3)`` positions, m; tets: ``(T, 4)`` vertex indices; points: ``(M, 3)`` m.
-
-    Returns:
-        ``(M,) bool``.
+        vertices: ``(N, 3)`` positions, m; tets: ``(T, 4)`` vertex indices.
     """
-    from scipy.spatial import cKDTree
 
-    vertices = np.asarray(vertices, dtype=np.float64)
-    tets = np.asarray(tets, dtype=np.int64)
-    points = np.atleast_2d(np.asarray(points, dtype=np.float64))
-    x = vertices[tets]
-    centre = x.mean(axis=1)
-    reach = float(np.linalg.norm(x - centre[:, None], axis=2).max())
-    dm_inv = np.linalg.inv(np.stack([x[:, 1] - x[:, 0], x[:, 2] - x[:, 0], x[:, 3] - x[:, 0]], axis=2))
-    inside = np.zeros(len(points), dtype=bool)
-    for k, candidates in enumerate(cKDTree(centre).query_ball_point(points, reach)):
-        if not candidates:
-            continue
-        c = np.asarray(candidates)
-        b = np.einsum("tij,tj->ti", dm_inv[c], points[k] - x[c, 0])
-        inside[k] = bool(np.any((b >= -tolerance).all(axis=1) & (b.sum(axis=1) <= 1.0 + tolerance)))
-    return inside
+    def __init__(self, vertices: np.ndarray, tets: np.ndarray):
+        from scipy.spatial import cKDTree
+
+        vertices = np.asarray(vertices, dtype=np.float64)
+        tets = np.asarray(tets, dtype=np.int64)
+        self._x = vertices[tets]
+        centre = self._x.mean(axis=1)
+        self._reach = float(np.linalg.norm(self._x - centre[:, None], axis=2).max())
+        x = self._x
+        self._dm_inv = np.linalg.inv(np.stack([x[:, 1] - x[:, 0], x[:, 2] - x[:, 0], x[:, 3] - x[:, 0]], axis=2))
+        self._tree = cKDTree(centre)
+
+    def inside(self, points: np.ndarray, tolerance: float = 1e-12) -> np.ndarray:
+        """Whether each of ``points`` ``(M, 3)`` m lies in some tet (closed, barycentric coordinates >=
+        ``-tolerance``): an exact and deterministic inside test for a tet mesh (ray casting against its surface is
+        neither at edges). Returns ``(M,) bool``."""
+        points = np.atleast_2d(np.asarray(points, dtype=np.float64))
+        x, dm_inv = self._x, self._dm_inv
+        inside = np.zeros(len(points), dtype=bool)
+        for k, candidates in enumerate(self._tree.query_ball_point(points, self._reach)):
+            if not candidates:
+                continue
+            c = np.asarray(candidates)
+            b = np.einsum("tij,tj->ti", dm_inv[c], points[k] - x[c, 0])
+            inside[k] = bool(np.any((b >= -tolerance).all(axis=1) & (b.sum(axis=1) <= 1.0 + tolerance)))
+        return inside
