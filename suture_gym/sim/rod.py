@@ -439,7 +439,9 @@ def rod_predict(model: RodModel, state: RodState, dt: float, gravity, node_force
 _NO_OBSTACLES = (np.zeros((0, 3)), np.zeros((0, 3)), np.zeros((0, 3)), np.zeros(0))
 
 
-def _obstacle_arrays(obstacles: StaticObstacles | None) -> tuple:
+def obstacle_arrays(obstacles: StaticObstacles | None) -> tuple:
+    """The obstacle arrays of :func:`detect_contacts_kernel`, ``(plane_point (P, 3), plane_normal (P, 3),
+    sphere_center (S, 3), sphere_radius (S,))`` (empty without obstacles)."""
     if obstacles is None:
         return _NO_OBSTACLES
     return obstacles.plane_point, obstacles.plane_normal, obstacles.sphere_center, obstacles.sphere_radius
@@ -453,7 +455,7 @@ def rod_detect_contacts(model: RodModel, state: RodState, work: RodWork, obstacl
     of the coupling overwrite theirs (:func:`~suture_gym.sim.coupling.suture_contact_rows`).
     """
     detect_contacts_kernel(
-        state.node_pos, model.node_inv_mass, model.radius, *_obstacle_arrays(obstacles), work.contact_gap,
+        state.node_pos, model.node_inv_mass, model.radius, *obstacle_arrays(obstacles), work.contact_gap,
         work.contact_normal,
     )  # fmt: skip
 
@@ -485,6 +487,30 @@ def rod_solve_iteration(
     :func:`~suture_gym.sim.rod_solver.assemble_rod_system`); if it is <= ``tolerance`` the solve is skipped and
     nothing moves except the frame alignment.
     """
+    rod, needle, n_pos, n_quat = rod_kernel_args(
+        model, work, needle_model, needle_state, node_inv_mass, contact_w, axis_inv_mass, axis
+    )
+    return rod_iteration_kernel(
+        rod, needle, work.start, work.frames, work.contacts, work.system, work.lam, state.node_pos, state.seg_quat,
+        n_pos, n_quat, float(dt), float(tolerance),
+    )  # fmt: skip
+
+
+def rod_kernel_args(
+    model: RodModel,
+    work: RodWork,
+    needle_model: NeedleModel | None = None,
+    needle_state: NeedleState | None = None,
+    node_inv_mass: np.ndarray | None = None,
+    contact_w: np.ndarray | None = None,
+    axis_inv_mass: np.ndarray | None = None,
+    axis: np.ndarray | None = None,
+) -> tuple:
+    """The argument groups ``(rod, needle, needle_pos, needle_quat)`` of
+    :func:`~suture_gym.sim.rod_solver.rod_iteration_kernel` (see :mod:`suture_gym.sim.rod_solver`) for the
+    arguments of :func:`rod_solve_iteration` (same meaning and defaults). Without a needle the needle group is
+    marked absent and the pose is a placeholder; with one, ``needle_pos`` and ``needle_quat`` are the state's own
+    arrays, which the solve updates in place."""
     if needle_model is not None and needle_state is not None:
         needle = (True, needle_model.body_inv_mass, needle_model.body_inv_inertia, needle_model.swage_pos_body)
         n_pos, n_quat = needle_state.body_pos, needle_state.body_quat
@@ -498,10 +524,7 @@ def rod_solve_iteration(
         work.isotropic_axis_w if axis_inv_mass is None else axis_inv_mass,
         work.isotropic_axis if axis is None else axis,
     )  # fmt: skip
-    return rod_iteration_kernel(
-        rod, needle, work.start, work.frames, work.contacts, work.system, work.lam, state.node_pos, state.seg_quat,
-        n_pos, n_quat, float(dt), float(tolerance),
-    )  # fmt: skip
+    return rod, needle, n_pos, n_quat
 
 
 #: Needle arguments of :func:`~suture_gym.sim.rod_solver.rod_iteration_kernel` for a rod without a needle (never read).

@@ -104,7 +104,14 @@ from suture_gym.sim.coupling.compliance import row_vertices
 from suture_gym.sim.model import Control, Model, State, Work
 from suture_gym.sim.needle import needle_constraint_wrench, needle_predict, needle_update_velocities
 from suture_gym.sim.quat import quat_to_matrix
-from suture_gym.sim.rod import friction_kernel, rod_detect_contacts, rod_predict, rod_solve_iteration
+from suture_gym.sim.rod import (
+    detect_contacts_kernel,
+    friction_kernel,
+    obstacle_arrays,
+    rod_kernel_args,
+    rod_predict,
+)
+from suture_gym.sim.rod_solver import rod_iteration_kernel
 from suture_gym.sim.tissue import (
     XPBD_STABILITY_LIMIT,
     project_face_contacts,
@@ -188,6 +195,60 @@ def update_particle_velocities(q: np.ndarray, q_prev: np.ndarray, dt: float, max
         if not (vx * vx + vy * vy + vz * vz <= limit):
             bad = True
     return bad
+
+
+@njit(cache=True)
+def suture_solve_kernel(iterations, tolerance, detect, rod, needle, rod_work, node_pos, seg_quat, needle_pos,
+                        needle_quat, dt, coupled, friction):  # fmt: skip
+    """The suture's direct solve of one sweep (:meth:`Solver._project_suture`): up to ``iterations`` iterations
+    of :func:`~suture_gym.sim.rod_solver.rod_iteration_kernel`, each after the contact rows are made afresh at
+    the current positions, until the residual is at most ``tolerance``. Returns the number of solves (the last
+    iteration, whose residual ended the loop, solves nothing). One compiled loop: called from Python an
+    iteration's four calls cost about a tenth of the paper cube's substep (their dispatch and argument tuples).
+
+    Args:
+        detect: ``(node_inv_mass (Ns,) 1/kg, radius m, plane_point, plane_normal, sphere_center, sphere_radius)``:
+            the model's masses, the thread's radius and :func:`~suture_gym.sim.rod.obstacle_arrays`.
+        rod, needle, needle_pos, needle_quat: :func:`~suture_gym.sim.rod.rod_kernel_args`.
+        rod_work: ``(start, frames, contacts, system, lam)`` of :class:`~suture_gym.sim.rod.RodWork`.
+        node_pos: ``(Ns, 3)`` m, seg_quat: ``(Ns-1, 4)``: the thread, updated in place.
+        coupled: ``None`` without tissue; else ``(needle_node_count, resistance_eps m, contact_rows,
+            tri_vertices (T, 3), tissue_q (N, 3) m, tissue compliance, contact_w (Ns,) 1/kg, contact_tissue (Ns,)
+            bool, row_lambda (M,) kg m)``: the node-triangle rows enter as contact rows
+            (:func:`~suture_gym.sim.coupling.suture_contact_rows`) and the tissue takes their reaction after each
+            solve (:func:`~suture_gym.sim.coupling.apply_contact_reaction`).
+        friction: ``None`` without thread friction; else ``(friction_rows, row_friction_lambda (M,))``
+            (:func:`~suture_gym.sim.coupling.suture_friction_rows`, needs ``coupled``).
+    """
+    start, frames, contacts, system, lam = rod_work
+    contact_gap, contact_normal, contact_cap = contacts[0], contacts[1], contacts[4]
+    z = system[5]
+    solves = 0
+    for _ in range(iterations):
+        # every iteration, obstacles or not: the gaps are reset to this iteration's (the tissue rows compare
+        # against them, and a gap kept from the last iteration would push a node out again)
+        detect_contacts_kernel(node_pos, detect[0], detect[1], detect[2], detect[3], detect[4], detect[5],
+                               contact_gap, contact_normal)  # fmt: skip
+        if coupled is not None:
+            nn, eps, contact_rows, tri_vertices, tissue_q, tissue, contact_w, contact_tissue, row_lambda = coupled
+            suture_contact_rows(nn, eps, contact_rows, tri_vertices, tissue_q, tissue, node_pos, contact_gap,
+                                contact_normal, contact_w, contact_tissue)  # fmt: skip
+            if friction is not None:
+                suture_friction_rows(nn, friction[0], tissue_q, tissue, node_pos, contact_gap, contact_normal,
+                                     contact_w, contact_cap)  # fmt: skip
+        residual = rod_iteration_kernel(rod, needle, start, frames, contacts, system, lam, node_pos, seg_quat,
+                                        needle_pos, needle_quat, dt, tolerance)  # fmt: skip
+        if residual <= tolerance:
+            break
+        solves += 1
+        if coupled is not None:
+            nn, eps, contact_rows, tri_vertices, tissue_q, tissue, contact_w, contact_tissue, row_lambda = coupled
+            apply_contact_reaction(nn, contact_rows, tri_vertices, contact_normal, z, contact_tissue, tissue,
+                                   row_lambda, tissue_q)  # fmt: skip
+            if friction is not None:
+                apply_friction_reaction(nn, friction[0], contact_cap, contact_normal, z, tissue, friction[1],
+                                        tissue_q)  # fmt: skip
+    return solves
 
 
 @njit(cache=True)
@@ -596,12 +657,13 @@ class Solver:
         )  # fmt: skip
 
     def _project_suture(self, model: Model, state: State, dt: float) -> None:
-        """The suture's direct solve (:func:`~suture_gym.sim.rod.rod_solve_iteration`, its contact rows made
-        two-way with the tissue), warm-started from ``state.suture_tension``, up to ``rod_iterations``
-        iterations until its residual is below ``rod_tolerance``.
+        """The suture's direct solve (:func:`suture_solve_kernel`: iterations of
+        :func:`~suture_gym.sim.rod.rod_solve_iteration`'s kernel, its contact rows made two-way with the tissue),
+        warm-started from ``state.suture_tension``, up to ``rod_iterations`` iterations until its residual is
+        below ``rod_tolerance``.
 
         Before each iteration every node's contact row is reset to the static obstacles' (``model.obstacles``;
-        none: no row) at the current positions (:func:`~suture_gym.sim.rod.rod_detect_contacts`). With coupling,
+        none: no row) at the current positions (as :func:`~suture_gym.sim.rod.rod_detect_contacts`). With coupling,
         nodes held on a path or passing an access point use their embedded inverse masses
         (:func:`~suture_gym.sim.coupling.embedded_inv_mass`), and the suture's node-triangle rows enter the solve
         as one-sided contact rows, in place of an obstacle's where theirs is the smaller gap
@@ -612,55 +674,37 @@ class Solver:
         """
         suture, rod_state, work = model.suture, state.suture, state.work.rod_work
         coupling, cwork = model.coupling, state.work.coupling_work
-        inv_mass, axis_inv_mass, axis = (None, None, None) if coupling is None else cwork.suture_mass
-        contact_w = None if coupling is None else cwork.suture_contact_w
-        tissue_w = None if coupling is None else state.work.compliance
         work.lam[:] = 0.0
         work.lam[1:, 0] = state.suture_tension
         work.begin(rod_state)
         work.contact_cap[:] = 0.0
-        # thread friction rows only when the thread has friction (the default has none)
-        friction_rows = None
-        if coupling is not None and coupling.params.suture_axial_friction > 0.0:
-            friction_rows = (
-                coupling.strand_friction, cwork.row_kind, cwork.row_tissue, cwork.row_weight, cwork.row_tangent,
-                rod_state.node_pos_prev, state.tissue.particle_q_prev, dt,
+        coupled = friction = None
+        if coupling is None:
+            rod, needle, needle_pos, needle_quat = rod_kernel_args(suture, work, model.needle, state.needle)
+        else:
+            inv_mass, axis_inv_mass, axis = cwork.suture_mass
+            rod, needle, needle_pos, needle_quat = rod_kernel_args(
+                suture, work, model.needle, state.needle, inv_mass, cwork.suture_contact_w, axis_inv_mass, axis
+            )
+            tissue_q, tissue_w = state.tissue.particle_q, state.work.compliance
+            coupled = (
+                coupling.needle_node_count, coupling.params.resistance_eps, cwork.contact_rows,
+                coupling.surface.tri_vertices, tissue_q, tissue_w, cwork.suture_contact_w, cwork.suture_contact_tissue,
+                cwork.row_lambda,
             )  # fmt: skip
-        state.work.rod_solves = 0
-        for _ in range(self.rod_iterations):
-            # every iteration, obstacles or not: the gaps are reset to this iteration's (the tissue rows compare
-            # against them, and a gap kept from the last iteration would push a node out again)
-            rod_detect_contacts(suture, rod_state, work, model.obstacles)
-            if coupling is not None:
-                suture_contact_rows(
-                    coupling.needle_node_count, coupling.params.resistance_eps, cwork.contact_rows,
-                    coupling.surface.tri_vertices, state.tissue.particle_q, tissue_w,
-                    rod_state.node_pos, work.contact_gap, work.contact_normal, cwork.suture_contact_w,
-                    cwork.suture_contact_tissue,
+            # thread friction rows only when the thread has friction (the default has none)
+            if coupling.params.suture_axial_friction > 0.0:
+                friction_rows = (
+                    coupling.strand_friction, cwork.row_kind, cwork.row_tissue, cwork.row_weight, cwork.row_tangent,
+                    rod_state.node_pos_prev, state.tissue.particle_q_prev, dt,
                 )  # fmt: skip
-            if friction_rows is not None:
-                suture_friction_rows(
-                    coupling.needle_node_count, friction_rows, state.tissue.particle_q, tissue_w, rod_state.node_pos,
-                    work.contact_gap, work.contact_normal, cwork.suture_contact_w, work.contact_cap,
-                )  # fmt: skip
-            residual = rod_solve_iteration(
-                suture, rod_state, work, dt, model.needle, state.needle, self.rod_tolerance, inv_mass, contact_w,
-                axis_inv_mass, axis,
-            )  # fmt: skip
-            if residual <= self.rod_tolerance:
-                break
-            state.work.rod_solves += 1
-            if coupling is not None:
-                apply_contact_reaction(
-                    coupling.needle_node_count, cwork.contact_rows, coupling.surface.tri_vertices,
-                    work.contact_normal, work.z, cwork.suture_contact_tissue, tissue_w, cwork.row_lambda,
-                    state.tissue.particle_q,
-                )  # fmt: skip
-            if friction_rows is not None:
-                apply_friction_reaction(
-                    coupling.needle_node_count, friction_rows, work.contact_cap, work.contact_normal, work.z,
-                    tissue_w, cwork.row_friction_lambda, state.tissue.particle_q,
-                )  # fmt: skip
+                friction = (friction_rows, cwork.row_friction_lambda)
+        detect = (suture.node_inv_mass, suture.radius, *obstacle_arrays(model.obstacles))
+        state.work.rod_solves = suture_solve_kernel(
+            self.rod_iterations, self.rod_tolerance, detect, rod, needle,
+            (work.start, work.frames, work.contacts, work.system, work.lam), rod_state.node_pos, rod_state.seg_quat,
+            needle_pos, needle_quat, float(dt), coupled, friction,
+        )  # fmt: skip
 
     def _update_velocities(self, model: Model, state: State, dt: float) -> bool:
         """Phase 4: velocities from the position change; returns whether the state diverged."""
