@@ -111,7 +111,7 @@ from suture_gym.sim.rod import (
     rod_kernel_args,
     rod_predict,
 )
-from suture_gym.sim.rod_solver import rod_iteration_kernel
+from suture_gym.sim.rod_solver import rod_iteration_kernel, tension_from_multipliers
 from suture_gym.sim.tissue import (
     XPBD_STABILITY_LIMIT,
     project_face_contacts,
@@ -732,9 +732,9 @@ class Solver:
             tip_direction = quat_to_matrix(state.needle.body_quat) @ model.needle.tip_dir_body
             coupling_finish(model.coupling, state.coupling, state.work.coupling_work, dt, tip_direction)
         if model.suture is not None:
-            state.suture_tension[:] = np.linalg.norm(state.work.rod_work.lam[1:, :3], axis=1)
+            tension_from_multipliers(state.work.rod_work.lam, state.suture_tension)
         if model.needle is not None:
-            state.needle_reaction[:] = needle_constraint_wrench(model.needle, state.needle, dt)
+            needle_constraint_wrench(model.needle, state.needle, dt, out=state.needle_reaction)
 
 
 class _Clock:
