@@ -328,7 +328,7 @@ def check_wrench(wrench) -> np.ndarray:
     arr = np.asarray(wrench, dtype=np.float64)
     if arr.shape != (6,):
         raise ValueError(f"needle_wrench must have shape (6,) = [force (3) N, torque (3) N m], got {arr.shape}")
-    if not np.all(np.isfinite(arr)):
+    if not np.isfinite(arr).all():
         raise ValueError(f"needle_wrench must be finite, got {arr.tolist()}")
     return arr
 

@@ -153,6 +153,9 @@ def predict_particles(
         q_prev: ``(N, 3)`` written with the positions before the prediction, m.
     """
     gx, gy, gz = gravity[0] * dt, gravity[1] * dt, gravity[2] * dt
+    # the decay factor of the last damping rate seen: neighbouring particles share their material's, and an exp per
+    # particle was half of this kernel's time
+    rate, decay = math.nan, 1.0
     for i in range(q.shape[0]):
         q_prev[i, 0] = q[i, 0]
         q_prev[i, 1] = q[i, 1]
@@ -162,7 +165,9 @@ def predict_particles(
             qd[i, 1] = 0.0
             qd[i, 2] = 0.0
             continue
-        decay = math.exp(-damping[i] * dt)
+        if damping[i] != rate:
+            rate = damping[i]
+            decay = math.exp(-rate * dt)
         qd[i, 0] = qd[i, 0] * decay + gx
         qd[i, 1] = qd[i, 1] * decay + gy
         qd[i, 2] = qd[i, 2] * decay + gz

@@ -9,7 +9,6 @@ import numpy as np
 from numba import njit
 
 from suture_gym.sim.coupling.model import CouplingModel, CouplingState
-from suture_gym.sim.coupling.paths import access_point
 from suture_gym.sim.rigid import (
     body_points_world,
 )
@@ -77,19 +76,27 @@ def track_access_points(model: CouplingModel, state: CouplingState, tissue_q: np
     """Matching (module docstring, detection step 2): re-find the strand coordinates of every path's access
     points on the strand at ``strand_q`` (M, 3) m (:func:`track_sigma`), newest path first, each bounded by its
     neighbours' (and the oldest entry by the stopper knot); ``tissue_q`` (N, 3) m. Updates ``state``."""
-    sigma = model.strand_sigma
-    window = model.params.track_window
-    total = model.strand_length
-    for k in range(state.path_count - 1, -1, -1):  # newest (front of the strand) first
-        upper = state.path_sigma_exit[k - 1] if k > 0 else min(total, model.knot_sigma)
-        newer_entry = state.path_sigma_entry[k + 1] if k + 1 < state.path_count else 0.0
-        if not state.path_open[k]:
-            b = access_point(model, tissue_q, state.path_exit_tri[k], state.path_exit_bary[k])
-            state.path_sigma_exit[k] = track_sigma(
-                strand_q, sigma, b, state.path_sigma_exit[k], window, newer_entry, state.path_sigma_entry[k]
-            )[0]
-            lower = state.path_sigma_exit[k]
+    _track_kernel(
+        strand_q, model.strand_sigma, model.params.track_window, min(model.strand_length, model.knot_sigma),
+        model.surface.tri_vertices, tissue_q, int(state.path_count), state.path_open, state.path_entry_tri,
+        state.path_entry_bary, state.path_exit_tri, state.path_exit_bary, state.path_sigma_entry,
+        state.path_sigma_exit,
+    )  # fmt: skip
+
+
+@njit(cache=True)
+def _track_kernel(strand_q, sigma, window, oldest_upper, tri_vertices, tissue_q, path_count, path_open, entry_tri,
+                  entry_bary, exit_tri, exit_bary, sigma_entry, sigma_exit):  # fmt: skip
+    """:func:`track_access_points` in one compiled loop (the access point of triangle ``tri`` at barycentrics
+    ``b`` is ``b @ tissue_q[tri_vertices[tri]]``, as :func:`~suture_gym.sim.coupling.paths.access_point`)."""
+    for k in range(path_count - 1, -1, -1):  # newest (front of the strand) first
+        upper = sigma_exit[k - 1] if k > 0 else oldest_upper
+        newer_entry = sigma_entry[k + 1] if k + 1 < path_count else 0.0
+        if not path_open[k]:
+            b = exit_bary[k] @ tissue_q[tri_vertices[exit_tri[k]]]
+            sigma_exit[k] = track_sigma(strand_q, sigma, b, sigma_exit[k], window, newer_entry, sigma_entry[k])[0]
+            lower = sigma_exit[k]
         else:
             lower = 0.0
-        b = access_point(model, tissue_q, state.path_entry_tri[k], state.path_entry_bary[k])
-        state.path_sigma_entry[k] = track_sigma(strand_q, sigma, b, state.path_sigma_entry[k], window, lower, upper)[0]
+        b = entry_bary[k] @ tissue_q[tri_vertices[entry_tri[k]]]
+        sigma_entry[k] = track_sigma(strand_q, sigma, b, sigma_entry[k], window, lower, upper)[0]
