@@ -203,6 +203,32 @@ def update_particle_velocities(q: np.ndarray, q_prev: np.ndarray, dt: float, max
 
 
 @njit(cache=True)
+def project_coupling_kernel(needle, tissue, coefficients, needle_rows, tip_friction_out, suture_rows, access,
+                            suture_mass, needle_pos, needle_quat, suture_q, tissue_q):  # fmt: skip
+    """One Gauss-Seidel pass over the coupling rows (:meth:`Solver._project_coupling`), in one compiled call: the
+    needle's rows (:func:`~suture_gym.sim.coupling.project_needle_rows`, whose ``needle``, ``tissue``,
+    ``coefficients``, ``rows`` and ``tip_friction_out`` these are), the suture's node-path rows
+    (:func:`~suture_gym.sim.coupling.project_suture_path_rows`; ``suture_rows = (row_kind, row_tissue,
+    row_weight, row_tangent, row_lambda)`` of :class:`~suture_gym.sim.coupling.CouplingWork`), then the node-access
+    rows (:func:`~suture_gym.sim.coupling.project_access_rows`; ``access = (access_rows, access_count,
+    access_lambda)``). ``suture_q`` (Ns, 3) m is ``None`` without a suture. The rows' node-path and node-access
+    multipliers are capped at the tear force times ``dt^2``."""
+    nn = needle[0]
+    compliance, tri_vertices = tissue[0], tissue[2]
+    force_cap = coefficients[4] * coefficients[2] * coefficients[2]
+    project_needle_rows(needle, tissue, coefficients, needle_rows, tip_friction_out, needle_pos, needle_quat, tissue_q)
+    if suture_q is None:
+        q = np.zeros((0, 3))
+    else:
+        q = suture_q
+        row_kind, row_tissue, row_weight, row_tangent, row_lambda = suture_rows
+        project_suture_path_rows(nn, row_kind, row_tissue, row_weight, row_tangent, suture_mass, compliance,
+                                 force_cap, row_lambda, q, tissue_q)  # fmt: skip
+    project_access_rows(access[0], access[1], needle[:4], suture_mass, compliance, tri_vertices, force_cap, access[2],
+                        needle_pos, needle_quat, q, tissue_q)  # fmt: skip
+
+
+@njit(cache=True)
 def suture_solve_kernel(iterations, tolerance, detect, rod, needle, rod_work, node_pos, seg_quat, needle_pos,
                         needle_quat, dt, coupled, friction):  # fmt: skip
     """The suture's direct solve of one sweep (:meth:`Solver._project_suture`): up to ``iterations`` iterations
@@ -628,37 +654,19 @@ class Solver:
         """The Gauss-Seidel coupling rows of needle and suture with the tissue."""
         coupling, work = model.coupling, state.work.coupling_work
         needle, needle_state = model.needle, state.needle
-        compliance = state.work.compliance
+        params = coupling.params
         tissue_q = state.tissue.particle_q
         tri_vertices = coupling.surface.tri_vertices
-        eps = coupling.params.resistance_eps
-        project_needle_rows(
+        project_coupling_kernel(
             (coupling.needle_node_count, needle.body_inv_mass, needle.body_inv_inertia, needle.node_pos_body,
              needle_state.body_pos_prev, needle_state.body_quat_prev),
-            (compliance, state.tissue.particle_q_prev, tri_vertices),
-            (coupling.strand_friction, eps, dt, coupling.params.tip_friction, coupling.params.tear_force),
-            work.needle_rows, work.tip_friction, needle_state.body_pos, needle_state.body_quat, tissue_q,
-        )  # fmt: skip
-        suture_q = state.suture.node_pos if state.suture is not None else np.zeros((0, 3))
-        if state.suture is not None:
-            project_suture_path_rows(
-                coupling.needle_node_count,
-                work.row_kind,
-                work.row_tissue,
-                work.row_weight,
-                work.row_tangent,
-                work.suture_mass,
-                compliance,
-                coupling.params.tear_force * dt * dt,
-                work.row_lambda,
-                suture_q,
-                tissue_q,
-            )
-        project_access_rows(
-            work.access_rows, work.access_count,
-            (coupling.needle_node_count, needle.body_inv_mass, needle.body_inv_inertia, needle.node_pos_body),
-            work.suture_mass, compliance, tri_vertices, coupling.params.tear_force * dt * dt,
-            work.access_lambda, needle_state.body_pos, needle_state.body_quat, suture_q, tissue_q,
+            (state.work.compliance, state.tissue.particle_q_prev, tri_vertices),
+            (coupling.strand_friction, params.resistance_eps, dt, params.tip_friction, params.tear_force),
+            work.needle_rows, work.tip_friction,
+            (work.row_kind, work.row_tissue, work.row_weight, work.row_tangent, work.row_lambda),
+            (work.access_rows, work.access_count, work.access_lambda), work.suture_mass,
+            needle_state.body_pos, needle_state.body_quat, None if state.suture is None else state.suture.node_pos,
+            tissue_q,
         )  # fmt: skip
 
     def _project_suture(self, model: Model, state: State, dt: float) -> None:
