@@ -203,83 +203,48 @@ def update_particle_velocities(q: np.ndarray, q_prev: np.ndarray, dt: float, max
 
 
 @njit(cache=True)
-def project_coupling_kernel(needle, tissue, coefficients, needle_rows, tip_friction_out, suture_rows, access,
-                            suture_mass, needle_pos, needle_quat, suture_q, tissue_q):  # fmt: skip
-    """One Gauss-Seidel pass over the coupling rows (:meth:`Solver._project_coupling`), in one compiled call: the
-    needle's rows (:func:`~suture_gym.sim.coupling.project_needle_rows`, whose ``needle``, ``tissue``,
-    ``coefficients``, ``rows`` and ``tip_friction_out`` these are), the suture's node-path rows
-    (:func:`~suture_gym.sim.coupling.project_suture_path_rows`; ``suture_rows = (row_kind, row_tissue,
-    row_weight, row_tangent, row_lambda)`` of :class:`~suture_gym.sim.coupling.CouplingWork`), then the node-access
-    rows (:func:`~suture_gym.sim.coupling.project_access_rows`; ``access = (access_rows, access_count,
-    access_lambda)``). ``suture_q`` (Ns, 3) m is ``None`` without a suture. The rows' node-path and node-access
-    multipliers are capped at the tear force times ``dt^2``."""
-    nn = needle[0]
-    compliance, tri_vertices = tissue[0], tissue[2]
-    force_cap = coefficients[4] * coefficients[2] * coefficients[2]
-    project_needle_rows(needle, tissue, coefficients, needle_rows, tip_friction_out, needle_pos, needle_quat, tissue_q)
-    if suture_q is None:
-        q = np.zeros((0, 3))
-    else:
-        q = suture_q
-        row_kind, row_tissue, row_weight, row_tangent, row_lambda = suture_rows
-        project_suture_path_rows(nn, row_kind, row_tissue, row_weight, row_tangent, suture_mass, compliance,
-                                 force_cap, row_lambda, q, tissue_q)  # fmt: skip
-    project_access_rows(access[0], access[1], needle[:4], suture_mass, compliance, tri_vertices, force_cap, access[2],
-                        needle_pos, needle_quat, q, tissue_q)  # fmt: skip
-
-
-@njit(cache=True)
-def suture_solve_kernel(iterations, tolerance, detect, rod, needle, rod_work, node_pos, seg_quat, needle_pos,
-                        needle_quat, dt, coupled, friction):  # fmt: skip
-    """The suture's direct solve of one sweep (:meth:`Solver._project_suture`): up to ``iterations`` iterations
-    of :func:`~suture_gym.sim.rod_solver.rod_iteration_kernel`, each after the contact rows are made afresh at
-    the current positions, until the residual is at most ``tolerance``. Returns the number of solves (the last
-    iteration, whose residual ended the loop, solves nothing). One compiled loop: called from Python, an
-    iteration's four calls and argument tuples cost about 30 us of the paper cube's 1.1 ms substep.
+def suture_contact_kernel(detect, node_pos, contacts, coupled, friction):
+    """The contact rows of one iteration of the suture's direct solve (:meth:`Solver._project_suture`), made
+    afresh at the current positions: every node's gap to the static obstacles
+    (:func:`~suture_gym.sim.rod.detect_contacts_kernel`), then, with tissue, the node-triangle rows in place of an
+    obstacle's where theirs is the smaller gap (:func:`~suture_gym.sim.coupling.suture_contact_rows`) and the thread's
+    friction rows (:func:`~suture_gym.sim.coupling.suture_friction_rows`).
 
     Args:
         detect: ``(node_inv_mass (Ns,) 1/kg, radius m, plane_point, plane_normal, sphere_center, sphere_radius)``:
             the model's masses, the thread's radius and :func:`~suture_gym.sim.rod.obstacle_arrays`.
-        rod, needle, needle_pos, needle_quat: :func:`~suture_gym.sim.rod.rod_kernel_args`.
-        rod_work: ``(start, frames, contacts, system, lam)`` of :class:`~suture_gym.sim.rod.RodWork`.
-        node_pos: ``(Ns, 3)`` m, seg_quat: ``(Ns-1, 4)``: the thread, updated in place.
+        node_pos: ``(Ns, 3)`` m. contacts: :class:`~suture_gym.sim.rod.RodWork`'s ``contacts`` group, written.
         coupled: ``None`` without tissue; else ``(needle_node_count, resistance_eps m, contact_rows,
             tri_vertices (T, 3), tissue_q (N, 3) m, tissue compliance, contact_w (Ns,) 1/kg, contact_tissue (Ns,)
-            bool, row_lambda (M,) kg m)``: the node-triangle rows enter as contact rows
-            (:func:`~suture_gym.sim.coupling.suture_contact_rows`) and the tissue takes their reaction after each
-            solve (:func:`~suture_gym.sim.coupling.apply_contact_reaction`).
+            bool, row_lambda (M,) kg m)``.
         friction: ``None`` without thread friction; else ``(friction_rows, row_friction_lambda (M,))``
-            (:func:`~suture_gym.sim.coupling.suture_friction_rows`, needs ``coupled``).
+            (needs ``coupled``).
     """
-    start, frames, contacts, system, lam = rod_work
     contact_gap, contact_normal, contact_cap = contacts[0], contacts[1], contacts[4]
-    z = system[5]
-    solves = 0
-    for _ in range(iterations):
-        # every iteration, obstacles or not: the gaps are reset to this iteration's (the tissue rows compare
-        # against them, and a gap kept from the last iteration would push a node out again)
-        detect_contacts_kernel(node_pos, detect[0], detect[1], detect[2], detect[3], detect[4], detect[5],
-                               contact_gap, contact_normal)  # fmt: skip
-        if coupled is not None:
-            nn, eps, contact_rows, tri_vertices, tissue_q, tissue, contact_w, contact_tissue, row_lambda = coupled
-            suture_contact_rows(nn, eps, contact_rows, tri_vertices, tissue_q, tissue, node_pos, contact_gap,
-                                contact_normal, contact_w, contact_tissue)  # fmt: skip
-            if friction is not None:
-                suture_friction_rows(nn, friction[0], tissue_q, tissue, node_pos, contact_gap, contact_normal,
-                                     contact_w, contact_cap)  # fmt: skip
-        residual = rod_iteration_kernel(rod, needle, start, frames, contacts, system, lam, node_pos, seg_quat,
-                                        needle_pos, needle_quat, dt, tolerance)  # fmt: skip
-        if residual <= tolerance:
-            break
-        solves += 1
-        if coupled is not None:
-            nn, eps, contact_rows, tri_vertices, tissue_q, tissue, contact_w, contact_tissue, row_lambda = coupled
-            apply_contact_reaction(nn, contact_rows, tri_vertices, contact_normal, z, contact_tissue, tissue,
-                                   row_lambda, tissue_q)  # fmt: skip
-            if friction is not None:
-                apply_friction_reaction(nn, friction[0], contact_cap, contact_normal, z, tissue, friction[1],
-                                        tissue_q)  # fmt: skip
-    return solves
+    # every iteration, obstacles or not: the gaps are reset to this iteration's (the tissue rows compare against
+    # them, and a gap kept from the last iteration would push a node out again)
+    detect_contacts_kernel(node_pos, detect[0], detect[1], detect[2], detect[3], detect[4], detect[5], contact_gap,
+                           contact_normal)  # fmt: skip
+    if coupled is not None:
+        nn, eps, contact_rows, tri_vertices, tissue_q, tissue, contact_w, contact_tissue, _ = coupled
+        suture_contact_rows(nn, eps, contact_rows, tri_vertices, tissue_q, tissue, node_pos, contact_gap,
+                            contact_normal, contact_w, contact_tissue)  # fmt: skip
+        if friction is not None:
+            suture_friction_rows(nn, friction[0], tissue_q, tissue, node_pos, contact_gap, contact_normal, contact_w,
+                                 contact_cap)  # fmt: skip
+
+
+@njit(cache=True)
+def suture_reaction_kernel(contacts, z, coupled, friction):
+    """The tissue's reaction to one solve of the suture's contact and friction rows (``z`` (Ns, 7), the solve's
+    multiplier steps; :func:`~suture_gym.sim.coupling.apply_contact_reaction`,
+    :func:`~suture_gym.sim.coupling.apply_friction_reaction`); arguments as :func:`suture_contact_kernel`'s."""
+    contact_normal, contact_cap = contacts[1], contacts[4]
+    nn, _, contact_rows, tri_vertices, tissue_q, tissue, _, contact_tissue, row_lambda = coupled
+    apply_contact_reaction(nn, contact_rows, tri_vertices, contact_normal, z, contact_tissue, tissue, row_lambda,
+                           tissue_q)  # fmt: skip
+    if friction is not None:
+        apply_friction_reaction(nn, friction[0], contact_cap, contact_normal, z, tissue, friction[1], tissue_q)
 
 
 @njit(cache=True)
@@ -654,24 +619,42 @@ class Solver:
         """The Gauss-Seidel coupling rows of needle and suture with the tissue."""
         coupling, work = model.coupling, state.work.coupling_work
         needle, needle_state = model.needle, state.needle
-        params = coupling.params
+        compliance = state.work.compliance
         tissue_q = state.tissue.particle_q
         tri_vertices = coupling.surface.tri_vertices
-        project_coupling_kernel(
+        eps = coupling.params.resistance_eps
+        project_needle_rows(
             (coupling.needle_node_count, needle.body_inv_mass, needle.body_inv_inertia, needle.node_pos_body,
              needle_state.body_pos_prev, needle_state.body_quat_prev),
-            (state.work.compliance, state.tissue.particle_q_prev, tri_vertices),
-            (coupling.strand_friction, params.resistance_eps, dt, params.tip_friction, params.tear_force),
-            work.needle_rows, work.tip_friction,
-            (work.row_kind, work.row_tissue, work.row_weight, work.row_tangent, work.row_lambda),
-            (work.access_rows, work.access_count, work.access_lambda), work.suture_mass,
-            needle_state.body_pos, needle_state.body_quat, None if state.suture is None else state.suture.node_pos,
-            tissue_q,
+            (compliance, state.tissue.particle_q_prev, tri_vertices),
+            (coupling.strand_friction, eps, dt, coupling.params.tip_friction, coupling.params.tear_force),
+            work.needle_rows, work.tip_friction, needle_state.body_pos, needle_state.body_quat, tissue_q,
+        )  # fmt: skip
+        suture_q = state.suture.node_pos if state.suture is not None else np.zeros((0, 3))
+        if state.suture is not None:
+            project_suture_path_rows(
+                coupling.needle_node_count,
+                work.row_kind,
+                work.row_tissue,
+                work.row_weight,
+                work.row_tangent,
+                work.suture_mass,
+                compliance,
+                coupling.params.tear_force * dt * dt,
+                work.row_lambda,
+                suture_q,
+                tissue_q,
+            )
+        project_access_rows(
+            work.access_rows, work.access_count,
+            (coupling.needle_node_count, needle.body_inv_mass, needle.body_inv_inertia, needle.node_pos_body),
+            work.suture_mass, compliance, tri_vertices, coupling.params.tear_force * dt * dt,
+            work.access_lambda, needle_state.body_pos, needle_state.body_quat, suture_q, tissue_q,
         )  # fmt: skip
 
     def _project_suture(self, model: Model, state: State, dt: float) -> None:
-        """The suture's direct solve (:func:`suture_solve_kernel`: iterations of
-        :func:`~suture_gym.sim.rod.rod_solve_iteration`'s kernel, its contact rows made two-way with the tissue),
+        """The suture's direct solve (iterations of :func:`~suture_gym.sim.rod.rod_solve_iteration`'s kernel, its
+        contact rows made two-way with the tissue: :func:`suture_contact_kernel`, :func:`suture_reaction_kernel`),
         warm-started from ``state.suture_tension``, up to ``rod_iterations`` iterations until its residual is
         below ``rod_tolerance``.
 
@@ -713,11 +696,18 @@ class Solver:
                 )  # fmt: skip
                 friction = (friction_rows, cwork.row_friction_lambda)
         detect = (suture.node_inv_mass, suture.radius, *obstacle_arrays(model.obstacles))
-        state.work.rod_solves = suture_solve_kernel(
-            self.rod_iterations, self.rod_tolerance, detect, rod, needle,
-            (work.start, work.frames, work.contacts, work.system, work.lam), rod_state.node_pos, rod_state.seg_quat,
-            needle_pos, needle_quat, float(dt), coupled, friction,
-        )  # fmt: skip
+        # the rod's iteration is called from here, not from a compiled loop around it: such a loop saved about 20 us
+        # of the paper cube's 1 ms substep and cost about 8 s more compilation on a cold cache
+        iteration = (rod, needle, work.start, work.frames, work.contacts, work.system, work.lam, rod_state.node_pos,
+                     rod_state.seg_quat, needle_pos, needle_quat, float(dt), float(self.rod_tolerance))  # fmt: skip
+        state.work.rod_solves = 0
+        for _ in range(self.rod_iterations):
+            suture_contact_kernel(detect, rod_state.node_pos, work.contacts, coupled, friction)
+            if rod_iteration_kernel(*iteration) <= self.rod_tolerance:
+                break
+            state.work.rod_solves += 1
+            if coupled is not None:
+                suture_reaction_kernel(work.contacts, work.z, coupled, friction)
 
     def _update_velocities(self, model: Model, state: State, dt: float) -> bool:
         """Phase 4: velocities from the position change; returns whether the state diverged."""
