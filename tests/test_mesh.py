@@ -230,6 +230,36 @@ def test_face_shared_by_three_tets():
         validate_tet_mesh(vertices, tets)
 
 
+def test_a_validated_topology_still_has_its_geometry_checked():
+    # The face and boundary checks of a tet array are remembered once passed (meshes are rebuilt every episode);
+    # the geometric ones run again for every vertex set: the same grid with a vertex moved through a face fails.
+    mesh = box_tet_grid((0.3, 0.2, 0.1), (3, 2, 2))
+    moved = mesh.vertices.copy()
+    moved[0] = mesh.vertices[mesh.tets[0]].mean(axis=0) + 2.0 * (mesh.vertices[mesh.tets[0]].mean(axis=0) - moved[0])
+    with pytest.raises(ValueError, match="is inverted|is degenerate"):
+        validate_tet_mesh(moved, mesh.tets)
+    with pytest.raises(ValueError, match=f"vertex {mesh.vertex_count} is not used"):  # another vertex count
+        validate_tet_mesh(np.vstack([mesh.vertices, [[5.0, 5.0, 5.0]]]), mesh.tets)
+
+
+def test_a_failed_topology_is_not_remembered():
+    vertices = np.vstack([UNIT_TET, -UNIT_TET[1:]])
+    tets = np.array([[0, 1, 2, 3], [0, 4, 6, 5]])
+    for _ in range(2):
+        with pytest.raises(ValueError, match="non-manifold at vertex 0"):
+            validate_tet_mesh(vertices, tets)
+
+
+def test_surface_of_a_validated_mesh_equals_the_computed_one_and_is_the_callers():
+    mesh = box_tet_grid((0.3, 0.2, 0.1), (3, 4, 2), scheme="six")
+    triangles, tri_tet = surface_triangles(mesh.tets, return_tet=True)  # from the validation's record
+    fresh, fresh_tet = surface_triangles(mesh.tets.astype(np.int64) + 0, return_tet=True)
+    assert triangles.dtype == np.int32 and tri_tet.dtype == np.int32
+    assert np.array_equal(triangles, fresh) and np.array_equal(tri_tet, fresh_tet)
+    triangles[:] = 0  # the caller's own copy: the record is untouched
+    assert np.array_equal(surface_triangles(mesh.tets), fresh)
+
+
 @pytest.mark.parametrize(
     "vertices, tets, message",
     [
