@@ -513,43 +513,55 @@ STIFF_ENV_SWEEPS = 2
 V0_YOUNGS = 3.0e3
 
 
-#: The coupling and action fields :func:`_stiff_env` scales down to the v0 physics (the forces v0 had and the
+#: The coupling and action fields :func:`_stiff_env` scales down with the tissue (the forces v0 had and the
 #: virtual coupling's gains).
 _V0_SCALED_COUPLING = ("puncture_force", "tear_force", "needle_axial_friction")
 _V0_SCALED_ACTION = ("max_force", "max_torque", "coupling_linear_stiffness", "coupling_linear_damping",
                      "coupling_angular_stiffness", "coupling_angular_damping")  # fmt: skip
+#: The insertion force model's forces (issue 14), scaled with the tissue where the model stays on.
+_INSERTION_FORCES = ("exit_puncture_force", "cutting_force")
+#: The physics an ``env_*_stiff`` benchmark times: the registered default, the same integrator and sweeps with
+#: the tissue at :data:`V0_YOUNGS` (stiffness the only change), and the v0 physics.
+ENV_PHYSICS = ("stiff", "soft", "v0")
 
 
-def _stiff_env(env_id: str, stiff: bool):
-    """``gym.make(env_id)``: if ``stiff``, as registered (300 kPa on the implicit integrator); otherwise with the
-    v0 physics: the tissue at :data:`V0_YOUNGS` on XPBD with one sweep, every force, the holder's mass and
-    inertia and the virtual coupling's gains scaled by ``V0_YOUNGS / E_default`` and the insertion force model
-    off (no exit threshold, cutting force or tip patch). Returns (env, overrides)."""
-    if stiff:
+def _stiff_env(env_id: str, physics: str):
+    """``(gym.make(env_id, ...), overrides)`` with one of :data:`ENV_PHYSICS`:
+
+    * ``"stiff"``: as registered (300 kPa on the implicit integrator), no overrides;
+    * ``"soft"``: the tissue at :data:`V0_YOUNGS` on the registered integrator and sweeps, every force, the
+      holder's mass and inertia and the virtual coupling's gains scaled by ``V0_YOUNGS / E_default`` (the same
+      task at 1/100 of the stiffness), the insertion force model's forces too;
+    * ``"v0"``: as ``"soft"`` but on XPBD with one sweep and the insertion force model off (no exit threshold,
+      cutting force or tip patch): the v0 ids' physics.
+    """
+    if physics not in ENV_PHYSICS:
+        raise ValueError(f"physics must be one of {ENV_PHYSICS}, got {physics!r}")
+    if physics == "stiff":
         return gym.make(env_id), {}
     base = load_config(ENV_IDS[env_id])
     scale = V0_YOUNGS / base.tissue.youngs_modulus
     c, a = base.coupling, base.action
+    if physics == "v0":
+        insertion = {"exit_puncture_force": 0.0, "cutting_force": 0.0, "tip_contact_radius": 0.0}
+    else:
+        insertion = {name: getattr(c, name) * scale for name in _INSERTION_FORCES}
     overrides = {
         "tissue": {"youngs_modulus": V0_YOUNGS},
         "needle": {
             "holder_mass": base.needle.holder_mass * scale,
             "holder_inertia": base.needle.holder_inertia * scale,
         },
-        "coupling": {
-            **{name: getattr(c, name) * scale for name in _V0_SCALED_COUPLING},
-            "exit_puncture_force": 0.0,
-            "cutting_force": 0.0,
-            "tip_contact_radius": 0.0,
-        },
+        "coupling": {**{name: getattr(c, name) * scale for name in _V0_SCALED_COUPLING}, **insertion},
         "action": {name: getattr(a, name) * scale for name in _V0_SCALED_ACTION},
         "reward": {"safe_force": base.reward.safe_force * scale},
-        "solver": {"tissue_integrator": "xpbd", "iterations": 1},
     }
+    if physics == "v0":
+        overrides["solver"] = {"tissue_integrator": "xpbd", "iterations": 1}
     return gym.make(env_id, config=overrides), overrides
 
 
-#: Alternating timed rounds of the default (stiff) and the v0 env in one ``env_*_stiff`` benchmark.
+#: Alternating timed rounds of the three physics (:data:`ENV_PHYSICS`) in one ``env_*_stiff`` benchmark.
 ENV_RATE_ROUNDS = 3
 
 
@@ -569,45 +581,51 @@ def _timed_round(env: gym.Env, steps: int) -> tuple[float, int]:
 
 
 def _env_rate_entry(env_id: str) -> dict:
-    """The default env, 300 kPa on the implicit integrator, against the same id with the v0 physics
-    (:func:`_stiff_env`), timed in :data:`ENV_RATE_ROUNDS` alternating rounds of the same seeded random
-    workload; each env's figure is its best round (the least disturbed by other load on the machine: the two
-    share the round's conditions)."""
+    """The default env, 300 kPa on the implicit integrator, against the same id at 3 kPa on the same integrator
+    and with the v0 physics (:func:`_stiff_env`), timed in :data:`ENV_RATE_ROUNDS` alternating rounds of the
+    same seeded random workload; each env's figure is its best round (the least disturbed by other load on the
+    machine: they share the round's conditions)."""
     # Imported here, not at the top: importing suture_gym.measure.envs registers its checks and benchmarks, and
     # doing so while this module loads would move them ahead of this module's in the registries (--list order).
     from suture_gym.measure.envs import TIMED_STEPS, WARMUP_STEPS, _random_run
 
-    (stiff, _), (v0, overrides) = _stiff_env(env_id, True), _stiff_env(env_id, False)
-    for env in (stiff, v0):
-        _random_run(env, WARMUP_STEPS, seed=1)
-    rates: dict[str, list[float]] = {"stiff": [], "v0": []}
+    envs, overrides = {}, {}
+    for physics in ENV_PHYSICS:
+        envs[physics], overrides[physics] = _stiff_env(env_id, physics)
+        _random_run(envs[physics], WARMUP_STEPS, seed=1)
+    rates: dict[str, list[float]] = {physics: [] for physics in ENV_PHYSICS}
     diverged = 0
     for _ in range(ENV_RATE_ROUNDS):
-        for name, env in (("stiff", stiff), ("v0", v0)):
+        for physics, env in envs.items():
             rate, bad = _timed_round(env, TIMED_STEPS)
-            rates[name].append(rate)
-            diverged += bad if name == "stiff" else 0
-    sim = stiff.unwrapped.sim
+            rates[physics].append(rate)
+            diverged += bad if physics == "stiff" else 0
+    best = {physics: max(rounds) for physics, rounds in rates.items()}
+    sim = envs["stiff"].unwrapped.sim
     model = sim.model
     entry = {
         "tets": model.tissue.tet_count,
         "particles": model.tissue.particle_count,
         "strand_nodes": model.coupling.strand_node_count,
-        "env_steps_per_s": max(rates["stiff"]),
+        "env_steps_per_s": best["stiff"],
         "diverged_steps": diverged,
         "substeps_per_env_step": sim.substeps,
         "dt_s": sim.dt,
         "iterations": sim.solver.iterations,
         "tissue_integrator": sim.solver.tissue_integrator,
-        "v0_overrides": overrides,
+        "v0_overrides": overrides["v0"],
+        "soft_overrides": overrides["soft"],
         "env_id": env_id,
-        "same_run_v0_env_steps_per_s": max(rates["v0"]),
-        "ratio_to_v0": max(rates["stiff"]) / max(rates["v0"]),
+        "same_run_v0_env_steps_per_s": best["v0"],
+        "ratio_to_v0": best["stiff"] / best["v0"],
+        "same_run_soft_env_steps_per_s": best["soft"],
+        "ratio_to_soft": best["stiff"] / best["soft"],
         "rounds_env_steps_per_s": rates,
         "workload": f"{TIMED_STEPS} seeded uniform random steps, resets included, {ENV_RATE_ROUNDS} rounds "
-        "alternating with the v0 physics (3 kPa, xpbd); best round of each",
+        f"alternating the default with the same integrator at {V0_YOUNGS:g} Pa (soft) and the v0 physics "
+        f"({V0_YOUNGS:g} Pa, xpbd); best round of each",
     }
-    for env in (stiff, v0):
+    for env in envs.values():
         env.close()
     return entry
 
