@@ -409,3 +409,22 @@ def test_a_sweep_whose_rows_moved_nothing_ends_the_substep():
     assert clear.state.work.tissue_integrator("quasi_newton", 1e-3).sweeps_done
     pressed, _ = _press(1.0e5, 1.0, solver, seconds=0.1)
     assert not pressed.state.work.tissue_integrator("quasi_newton", 1e-3).sweeps_done
+
+
+def test_the_stiff_env_benchmark_changes_only_the_stiffness_for_its_soft_physics():
+    from suture_gym.measure.tissue_stiff import V0_YOUNGS, _stiff_env
+
+    env_id = "SutureGym/NeedleInsert-v2"
+    configs = {physics: _stiff_env(env_id, physics)[0].unwrapped.config for physics in ("stiff", "soft", "v0")}
+    stiff, soft, v0 = configs["stiff"], configs["soft"], configs["v0"]
+    scale = V0_YOUNGS / stiff.tissue.youngs_modulus
+    assert soft.tissue.youngs_modulus == v0.tissue.youngs_modulus == V0_YOUNGS
+    assert soft.solver == stiff.solver  # same integrator and sweeps
+    assert (v0.solver.tissue_integrator, v0.solver.iterations) == ("xpbd", 1)
+    for name in ("puncture_force", "tear_force", "exit_puncture_force", "cutting_force"):
+        assert getattr(soft.coupling, name) == pytest.approx(getattr(stiff.coupling, name) * scale)
+    assert soft.coupling.tip_contact_radius == stiff.coupling.tip_contact_radius
+    assert (v0.coupling.exit_puncture_force, v0.coupling.cutting_force, v0.coupling.tip_contact_radius) == (0, 0, 0)
+    assert soft.action.max_force == pytest.approx(stiff.action.max_force * scale)
+    with pytest.raises(ValueError, match="physics must be one of"):
+        _stiff_env(env_id, "medium")

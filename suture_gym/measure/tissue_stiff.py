@@ -515,8 +515,8 @@ V0_YOUNGS = 3.0e3
 
 #: The coupling and action fields :func:`_stiff_env` scales down with the tissue (the forces v0 had and the
 #: virtual coupling's gains).
-_V0_SCALED_COUPLING = ("puncture_force", "tear_force", "needle_axial_friction")
-_V0_SCALED_ACTION = ("max_force", "max_torque", "coupling_linear_stiffness", "coupling_linear_damping",
+_SCALED_COUPLING = ("puncture_force", "tear_force", "needle_axial_friction")
+_SCALED_ACTION = ("max_force", "max_torque", "coupling_linear_stiffness", "coupling_linear_damping",
                      "coupling_angular_stiffness", "coupling_angular_damping")  # fmt: skip
 #: The insertion force model's forces (issue 14), scaled with the tissue where the model stays on.
 _INSERTION_FORCES = ("exit_puncture_force", "cutting_force")
@@ -552,8 +552,8 @@ def _stiff_env(env_id: str, physics: str):
             "holder_mass": base.needle.holder_mass * scale,
             "holder_inertia": base.needle.holder_inertia * scale,
         },
-        "coupling": {**{name: getattr(c, name) * scale for name in _V0_SCALED_COUPLING}, **insertion},
-        "action": {name: getattr(a, name) * scale for name in _V0_SCALED_ACTION},
+        "coupling": {**{name: getattr(c, name) * scale for name in _SCALED_COUPLING}, **insertion},
+        "action": {name: getattr(a, name) * scale for name in _SCALED_ACTION},
         "reward": {"safe_force": base.reward.safe_force * scale},
     }
     if physics == "v0":
