@@ -47,9 +47,10 @@ BYTES_PER_TET_IMPLICIT = 8_000
 #: least recently used first, at most :data:`TOPOLOGY_CACHE_SIZE`: each with its vertex count and its boundary
 #: (:func:`surface_triangles`' triangles and their tets, read-only). Those checks and the boundary read the tets
 #: alone, and the environments rebuild the same grids every episode (a randomised stiffness or wound gap moves the
-#: vertices, not the tets): they were 8-17 ms of a SutureThrow or WoundClosure reset's 14-34.
+#: vertices, not the tets): they were 8-17 ms of a SutureThrow or WoundClosure reset's 14-34. An env holds one to
+#: three tet arrays (the bars and their union); a boundary costs about 16 bytes a triangle.
 _SOUND_TOPOLOGIES: OrderedDict[bytes, tuple[int, np.ndarray, np.ndarray]] = OrderedDict()
-TOPOLOGY_CACHE_SIZE = 64
+TOPOLOGY_CACHE_SIZE = 16
 
 
 def physical_memory() -> int | None:
