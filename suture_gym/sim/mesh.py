@@ -44,12 +44,13 @@ MAX_TETS = 1_000_000
 BYTES_PER_TET_XPBD = 1_100
 BYTES_PER_TET_IMPLICIT = 8_000
 #: The tet arrays whose faces and boundary :func:`validate_tet_mesh` found sound, by digest (:func:`_topology_key`),
-#: least recently used first, at most :data:`TOPOLOGY_CACHE_SIZE`: each with its vertex count and its boundary
-#: (:func:`surface_triangles`' triangles and their tets, read-only). Those checks and the boundary read the tets
+#: least recently used first, at most :data:`TOPOLOGY_CACHE_SIZE`: each with its boundary (:func:`surface_triangles`'
+#: triangles and their tets, read-only; the vertex count needs no record: a tet array that passes the checks before
+#: these uses every vertex index below it, and only those). Those checks and the boundary read the tets
 #: alone, and the environments rebuild the same grids every episode (a randomised stiffness or wound gap moves the
 #: vertices, not the tets): they were 8-17 ms of a SutureThrow or WoundClosure reset's 14-34. An env holds one to
 #: three tet arrays (the bars and their union); a boundary costs about 16 bytes a triangle.
-_SOUND_TOPOLOGIES: OrderedDict[bytes, tuple[int, np.ndarray, np.ndarray]] = OrderedDict()
+_SOUND_TOPOLOGIES: OrderedDict[bytes, tuple[np.ndarray, np.ndarray]] = OrderedDict()
 TOPOLOGY_CACHE_SIZE = 16
 
 
@@ -213,8 +214,7 @@ def validate_tet_mesh(vertices: np.ndarray, tets: np.ndarray) -> None:
         raise ValueError(f"tet {bad} is {kind}: signed volume {vol[bad]:.6g} m^3, vertices {tets[bad].tolist()}")
 
     key = _topology_key(tets)
-    known = _sound_topology(key)
-    if known is not None and known[0] == n:  # these tets' faces and boundary passed before
+    if _sound_topology(key) is not None:  # these tets' faces and boundary passed before
         return
     faces, face_tet, first = _face_groups(tets)
     counts = np.diff(np.append(first, len(faces)))
@@ -237,7 +237,7 @@ def validate_tet_mesh(vertices: np.ndarray, tets: np.ndarray) -> None:
     _check_closed_manifold(faces[single], n)
     triangles, tri_tet = faces[single].astype(np.int32), face_tet[single].astype(np.int32)
     triangles.flags.writeable = tri_tet.flags.writeable = False
-    _SOUND_TOPOLOGIES[key] = (n, triangles, tri_tet)
+    _SOUND_TOPOLOGIES[key] = (triangles, tri_tet)
     if len(_SOUND_TOPOLOGIES) > TOPOLOGY_CACHE_SIZE:
         _SOUND_TOPOLOGIES.popitem(last=False)
 
@@ -250,7 +250,7 @@ def _topology_key(tets: np.ndarray) -> bytes:
     return digest.digest()
 
 
-def _sound_topology(key: bytes) -> tuple[int, np.ndarray, np.ndarray] | None:
+def _sound_topology(key: bytes) -> tuple[np.ndarray, np.ndarray] | None:
     """The :data:`_SOUND_TOPOLOGIES` entry of ``key`` (now the most recently used), or None."""
     entry = _SOUND_TOPOLOGIES.get(key)
     if entry is not None:
@@ -344,7 +344,7 @@ def surface_triangles(tets: np.ndarray, return_tet: bool = False):
     tets = np.asarray(tets)
     known = _sound_topology(_topology_key(tets)) if tets.ndim == 2 and tets.shape[1] == 4 else None
     if known is not None:  # a validated mesh's: the boundary its validation found
-        triangles, tri_tet = known[1].copy(), known[2].copy()
+        triangles, tri_tet = known[0].copy(), known[1].copy()
     else:
         faces, face_tet, first = _face_groups(tets)
         counts = np.diff(np.append(first, len(faces)))
