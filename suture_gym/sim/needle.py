@@ -333,19 +333,19 @@ def check_wrench(wrench) -> np.ndarray:
     return arr
 
 
-def grip_offset_world(model: NeedleModel, state: NeedleState) -> np.ndarray:
-    """(3,) vector from the centre of mass to the grip point, world frame, m."""
-    return quat_rotate(state.body_quat, model.grip_pos_body)
-
-
 def wrench_at_com(model: NeedleModel, state: NeedleState, wrench) -> tuple[np.ndarray, np.ndarray]:
     """Convert a grip-point wrench (6,) to ``(force (3,) N, torque about the centre of mass (3,) N m)``.
 
     ``tau_com = tau_grip + r_grip x F`` with ``r_grip`` the world offset from the centre of mass to the grip.
     """
-    w = check_wrench(wrench)
-    force = w[:3].copy()
-    return force, w[3:] + cross3(grip_offset_world(model, state), force)
+    return _com_wrench(state.body_quat, model.grip_pos_body, check_wrench(wrench))
+
+
+@njit(cache=True)
+def _com_wrench(quat, grip_body, wrench):
+    """:func:`wrench_at_com`'s arithmetic for the orientation ``quat`` and the grip ``grip_body`` (body frame, m)."""
+    force = wrench[:3].copy()
+    return force, wrench[3:] + cross3(quat_rotate(quat, grip_body), force)
 
 
 def needle_predict(model: NeedleModel, state: NeedleState, wrench, dt: float, gravity) -> None:
@@ -375,8 +375,7 @@ def _predict_kernel(inv_mass, inertia, inv_inertia, grip_body, lin_damp, ang_dam
                     omega, pos_prev, quat_prev, pos_pred, quat_pred):  # fmt: skip
     """:func:`needle_predict`: the grip-point wrench moved to the centre of mass (:func:`wrench_at_com`), then
     :func:`~suture_gym.sim.rigid.rigid_predict`."""
-    force = wrench[:3].copy()
-    torque = wrench[3:] + cross3(quat_rotate(quat, grip_body), force)
+    force, torque = _com_wrench(quat, grip_body, wrench)
     pos_prev[:] = pos
     quat_prev[:] = quat
     new_pos, new_quat, new_vel, new_omega = rigid_predict(
