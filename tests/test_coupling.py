@@ -778,7 +778,7 @@ def test_a_node_crossing_a_rigid_face_gets_a_row_keeping_it_on_its_side(upward):
     np.testing.assert_allclose(work.row_contact_normal[7], [0.0, 0.0, -1.0], atol=1e-12)
 
 
-def test_a_push_against_a_rigid_face_is_not_tissue_damage():
+def test_contacts_never_tear_and_a_push_against_a_rigid_face_is_not_tissue_force():
     tissue = _pinned_bottom_block()
     needle = NeedleModel.from_shape()
     model = CouplingModel.build(tissue, needle)
@@ -789,9 +789,30 @@ def test_a_push_against_a_rigid_face_is_not_tissue_damage():
     work.row_kind[6], work.row_tri[6], work.row_lambda[6] = ROW_TRIANGLE, soft, 0.5 * dt * dt  # 0.5 N on tissue
     coupling_finish(model, state, work, dt, np.array([0.0, 0.0, -1.0]))
     assert state.max_force == pytest.approx(0.5) and not state.damaged
-    work.row_lambda[6] = model.params.tear_force * dt * dt
+    tear = model.params.tear_force
+    work.row_lambda[6] = 1.5 * tear * dt * dt  # a contact on the tissue over the tear force: read, but no cut
     coupling_finish(model, state, work, dt, np.array([0.0, 0.0, -1.0]))
-    assert state.damaged
+    assert state.max_force == pytest.approx(1.5 * tear) and not state.damaged
+
+
+@pytest.mark.parametrize("row", ["path", "access"])
+def test_a_row_holding_a_strand_at_the_tear_force_damages_the_tissue(row):
+    model = CouplingModel.build(_pinned_bottom_block(), NeedleModel.from_shape())
+    state, work = CouplingState.empty(model), CouplingWork(model)
+    dt, tear = 1e-3, model.params.tear_force
+    lam = -tear * dt * dt  # the cap of such a row (its multiplier is kept above -tear_force dt^2)
+    if row == "path":
+        work.row_kind[8], work.row_lambda[8] = ROW_PATH, 0.99 * lam
+    else:
+        work.access_count, work.access_lambda[0] = 1, 0.99 * lam
+    coupling_finish(model, state, work, dt, np.array([0.0, 0.0, -1.0]))
+    assert state.max_force == pytest.approx(0.99 * tear) and not state.damaged
+    if row == "path":
+        work.row_lambda[8] = lam
+    else:
+        work.access_lambda[0] = lam
+    coupling_finish(model, state, work, dt, np.array([0.0, 0.0, -1.0]))
+    assert state.damaged and state.max_force == pytest.approx(tear)
 
 
 def test_the_tip_never_punctures_a_rigid_face():
