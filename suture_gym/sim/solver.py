@@ -526,10 +526,13 @@ class Solver:
     ) -> None:
         """Phase 3, one sweep over every constraint group.
 
-        With an implicit tissue integrator a later sweep re-solves the tissue only if the previous sweep's
-        coupling rows moved it (:attr:`~suture_gym.sim.tissue_implicit.ImplicitTissue.rows_moved`): otherwise
-        the solve would start where the last one ended, under the same forces, and only refine its quasi-Newton
-        iterate (the tissue checks validate one solve per substep); or if the previous solve ended on a large
+        With an implicit tissue integrator a later sweep re-solves the tissue only if the coupling rows moved it
+        since the last solve by more than a quasi-Newton step is trusted without a convergence test
+        (:attr:`~suture_gym.sim.tissue_implicit.ImplicitTissue.rows_move` over ``large_step``, a quarter of the
+        shortest rest edge): a smaller move is the rows' linear response through the rest system ``A0``, which
+        :meth:`~suture_gym.sim.tissue_implicit.ImplicitTissue.propagate_rows` has already spread over the whole
+        tissue, and a solve would only refine it (by 2 um where the rows moved it 0.2 mm on the hand; no move at
+        all leaves nothing to refine); or if the previous solve ended on a large
         step it did not test (:attr:`~suture_gym.sim.tissue_implicit.ImplicitTissue.unconverged`): only the last
         sweep's solve, which carries the rows' load of the earlier ones, iterates until converged
         (:meth:`~suture_gym.sim.tissue_implicit.QuasiNewton.solve`). The earlier sweeps exist to let the tissue
@@ -577,8 +580,9 @@ class Solver:
         and the suture, then the rows' load spread over the tissue."""
         tissue_q = state.tissue.particle_q
         integrator = state.work.tissue_integrator(self.tissue_integrator, dt)
-        if first_sweep or integrator.rows_moved or integrator.unconverged:
+        if first_sweep or integrator.unconverged or integrator.rows_move > integrator.large_step:
             integrator.solve(tissue_q, self.tissue_iterations, converge=last_sweep)
+            integrator.rows_move = 0.0
         if model.coupling is not None:
             before = tissue_q.copy()
             bodies = None if last_sweep else self._row_bodies(state)
