@@ -18,8 +18,8 @@ raw SI values, infinite bounds), or for the goal-conditioned variant a Dict with
 float32`` m in the world frame, with the vector as ``state`` (unless ``observation.include_state`` is false); the
 goal-conditioned variant adds those keys beside its own (:mod:`suture_gym.envs.sensors`).
 
-Episode end: ``terminated`` on success, on a tear (coupling force above the tear force, unless
-``termination.end_on_tear`` is off), when the tip leaves the workspace, (flat ids, unless
+Episode end: ``terminated`` on success, on a tear (a row holding the needle or thread in the tissue at the tear
+force, unless ``termination.end_on_tear`` is off), when the tip leaves the workspace, (flat ids, unless
 ``termination.end_on_miss`` is off) once NeedleInsert or SutureThrow can no longer succeed because the stitch was
 entered or exited off the plan, and when the simulation diverges (the solver's flag: a non-finite position or a
 speed above ``solver.max_speed``; or a non-finite observation or reward): a failure like a tear, with

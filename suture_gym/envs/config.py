@@ -319,7 +319,7 @@ class CouplingConfig(CouplingParams):
     exit_puncture_force: float = 0.25  # N, force on the surface from inside that lets the tip out
     cutting_force: float = 0.1  # N, resistance to the tip's advance while a puncture is open
     tip_contact_radius: float = 1.0e-3  # m, radius of the surface patch the tip loads before puncture
-    tear_force: float = 10.0  # N, coupling force that tears the tissue (ends the episode)
+    tear_force: float = 10.0  # N, force of a row holding a strand in the tissue that tears it (ends the episode)
     needle_axial_friction: float = 150.0  # N/m of needle inside the tissue
 
     def params(self, puncture_force: float | None = None) -> CouplingParams:
@@ -487,7 +487,7 @@ class TerminationConfig(_Section):
     SECTION: ClassVar[str] = "termination"
 
     workspace_margin: float = 0.015  # m, the tip must stay within the tissue's box grown by this margin
-    end_on_tear: bool = True  # terminate when the tissue tears (coupling force above coupling.tear_force)
+    end_on_tear: bool = True  # terminate when the tissue tears (a strand's row at coupling.tear_force)
     # terminate once the task cannot succeed: a stitch entered or exited farther than reward.access_tolerance from
     # the plan, in tasks that need every stitch on it (NeedleInsert, SutureThrow); never in the goal-conditioned ids
     end_on_miss: bool = True

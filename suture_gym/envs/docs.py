@@ -127,8 +127,9 @@ def _end_lines(task: type[Task], config) -> list[str]:
     seconds = task.MAX_EPISODE_STEPS * config.solver.dt * config.solver.substeps
     return [
         "``terminated`` on success; on failure: the tip leaves the workspace (the tissue's box grown by "
-        f"``termination.workspace_margin = {config.termination.workspace_margin}`` m), a tear (a coupling force "
-        f"above ``coupling.tear_force = {config.coupling.tear_force}`` N, with ``termination.end_on_tear``), "
+        f"``termination.workspace_margin = {config.termination.workspace_margin}`` m), a tear (a row holding the "
+        f"needle or thread in the tissue at ``coupling.tear_force = {config.coupling.tear_force}`` N, with "
+        "``termination.end_on_tear``), "
         "(flat ids of tasks that need every stitch on the plan, with ``termination.end_on_miss``) a stitch "
         "entered or exited off the plan, or a divergence of the simulation (a non-finite state, a speed above "
         f"``solver.max_speed = {config.solver.max_speed}`` m/s, or a non-finite observation or reward): "

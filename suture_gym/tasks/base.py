@@ -85,7 +85,7 @@ class Observables:
         tip_force: force the tip exerted on the surface before puncturing, N (0 once inside).
         tissue_force: largest coupling-constraint force in the last substep, N.
         haptic_wrench: ``(6,) float64`` wrench the constraints exert on the needle, ``[N, N m]`` about the grip.
-        damaged: the tissue tore (a coupling force exceeded the tear force); sticky.
+        damaged: the tissue tore (a row holding a strand in it reached the tear force); sticky.
         wound_gap: mean gap between the facing wound faces over their free upper half, m (0 without a wound).
         thread_through: thread beyond the needle that has come out of the newest exit point, m (0 before).
         suture_samples: ``(S, 3) float64`` thread nodes sampled from the swage to the tail, m.
