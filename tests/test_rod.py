@@ -28,7 +28,6 @@ from suture_gym.sim.rod_solver import (
     assemble_rod_system,
     bend_twist_constraint,
     bend_twist_jacobian,
-    guarded_inverse,
     solve_block_tridiagonal,
     stretch_shear_constraint,
     stretch_shear_jacobian,
@@ -163,16 +162,33 @@ def test_block_tridiagonal_solve_matches_dense():
     np.testing.assert_allclose(z.ravel(), np.linalg.solve(dense, rhs.ravel()), rtol=1e-11, atol=1e-14)
 
 
-def test_guarded_inverse_drops_a_null_row():
-    a = RNG.normal(size=(BLOCK, BLOCK))
-    a = a @ a.T + np.eye(BLOCK)
-    a[3, :] = 0.0
-    a[:, 3] = 0.0
-    out = np.zeros((BLOCK, BLOCK))
-    guarded_inverse(a, np.zeros((BLOCK, BLOCK)), np.zeros(BLOCK), out)
-    keep = [i for i in range(BLOCK) if i != 3]
-    np.testing.assert_allclose(out[np.ix_(keep, keep)], np.linalg.inv(a[np.ix_(keep, keep)]), rtol=1e-10)
-    np.testing.assert_array_equal(out[3], 0.0)
+def test_block_tridiagonal_solve_drops_a_null_row():
+    """A row with a zero diagonal and no coupling (a redundant or fully pinned constraint, or an unused row) gets
+    no multiplier, whatever its right-hand side, and the other rows solve the system without it."""
+    nb, k, null = 4, BLOCK, (2, 4)
+    dense = np.zeros((nb * k, nb * k))
+    for b in range(nb):
+        m = RNG.normal(size=(k, k))
+        dense[b * k : (b + 1) * k, b * k : (b + 1) * k] = m @ m.T + 3.0 * k * np.eye(k)
+        if b:
+            low = RNG.normal(size=(k, k)) * COUPLING_PATTERN
+            dense[b * k : (b + 1) * k, (b - 1) * k : b * k] = low
+            dense[(b - 1) * k : b * k, b * k : (b + 1) * k] = low.T
+    assert np.all(np.linalg.eigvalsh(dense) > 0.0)
+    row = null[0] * k + null[1]
+    dense[row, :] = 0.0
+    dense[:, row] = 0.0
+    diag = np.array([dense[b * k : (b + 1) * k, b * k : (b + 1) * k] for b in range(nb)])
+    lower = np.zeros_like(diag)
+    for b in range(1, nb):
+        lower[b] = dense[b * k : (b + 1) * k, (b - 1) * k : b * k]
+    rhs = RNG.normal(size=(nb, k))
+    z = np.zeros_like(rhs)
+    solve_block_tridiagonal(diag, lower, rhs, np.zeros_like(diag), np.zeros_like(rhs), z)
+    keep = [i for i in range(nb * k) if i != row]
+    expected = np.linalg.solve(dense[np.ix_(keep, keep)], rhs.ravel()[keep])
+    assert z[null] == 0.0
+    np.testing.assert_allclose(z.ravel()[keep], expected, rtol=1e-10, atol=1e-14)
 
 
 @pytest.mark.parametrize("anisotropic", [False, True])

@@ -250,7 +250,7 @@ class RodWork:
         self.diag = np.zeros((n, k, k))
         self.lower = np.zeros((n, k, k))
         self.rhs = np.zeros((n, k))
-        self.dinv = np.zeros((n, k, k))
+        self.fac = np.zeros((n, k, k))
         self.y = np.zeros((n, k))
         self.z = np.zeros((n, k))
         self.seg_rot = np.zeros((n - 1, 3, 3))
@@ -276,7 +276,7 @@ class RodWork:
         self.contacts = (
             self.contact_gap, self.contact_normal, self.contact_active, self.contact_push, self.contact_cap,
         )  # fmt: skip
-        self.system = (self.diag, self.lower, self.dinv, self.rhs, self.y, self.z)
+        self.system = (self.diag, self.lower, self.fac, self.rhs, self.y, self.z)
 
     def reset(self) -> None:
         """Forget the history (multipliers and the tension warm start), e.g. when a state is restored; two

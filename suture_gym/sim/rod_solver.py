@@ -17,14 +17,14 @@ Kernels take their arrays in groups (tuples built once by :class:`~suture_gym.si
   contact_push (N, 3) m, contact_cap (N,) kg m)``: row 6 of node ``i`` is a one-sided contact where
   ``contact_cap[i] == 0`` and a two-sided friction row whose accumulated multiplier stays within
   ``+-contact_cap[i]`` where it is positive (:func:`_contact_rows`);
-* ``system``: ``RodWork.system``, ``(diag, lower, dinv (N, 7, 7), rhs, y, z (N, 7))``.
+* ``system``: ``RodWork.system``, ``(diag, lower, fac (N, 7, 7), rhs, y, z (N, 7))``.
 
 The small helpers are compiled into their callers (``inline="always"``) and take their arrays whole with an index
 (``seg_rot, j`` rather than ``seg_rot[j]``; a block of ``diag`` by its index and row and column offsets): numba
 counts the reference of every view it makes in and out with atomic operations, and ``perf`` put that counting
 at about a fifth of the abdominal-wall scene's run time when the helpers took views. The same arithmetic, bit for
 bit, with neither (``scripts/bench.py``'s ``strands``, eight iterations a substep: 1.17-1.26 -> 1.09-1.13 ms).
-:func:`guarded_inverse` is compiled into :func:`solve_block_tridiagonal` at its one call site; the block solve
+:func:`_factor_block` is compiled into :func:`solve_block_tridiagonal` at its one call site; the block solve
 stays a separate function (compiling it into the iteration's two call sites doubles the compilation time for a
 few percent).
 """
@@ -261,138 +261,149 @@ def bend_twist_jacobian(q0, q1):
 
 
 @njit(cache=True, inline="always")
-def guarded_inverse(a, lmat, d, out):
-    """Inverse of a symmetric positive semi-definite :data:`BLOCK` x :data:`BLOCK` matrix ``a`` by LDL^T.
-
-    ``lmat`` (7, 7) and ``d`` (7,) are scratch (``d`` ends as the pivots' reciprocals); the inverse goes to
-    ``out`` (7, 7). A row whose pivot falls below ``1e-12`` of its diagonal (a redundant or fully pinned
-    constraint) is dropped: its rows and columns of ``out`` are zero, so it receives no multiplier. (Fixed size
-    so that the loops compile unrolled.) Each pivot is inverted once and multiplied: the 105 divisions of a
-    block by its pivots were half of the inverse's time (264 -> 139 ns a block; entries within 3e-14 of the
-    divided ones, relative to the largest).
-    """
+def _factor_block(s, fac, b, pivots, ld):
+    """Factor the symmetric positive semi-definite :data:`BLOCK` x :data:`BLOCK` matrix ``s`` (its lower triangle is
+    read) as ``L D L^T`` into ``fac[b]``: ``L``'s unit lower triangle strictly below the diagonal, ``D^+`` (the
+    pivots' reciprocals) on it. A row whose pivot falls below :data:`_PIVOT_TOL` of its diagonal (a redundant or
+    fully pinned constraint) is dropped: its ``D^+`` entry and its column of ``L`` are zero, so
+    ``L^-T D^+ L^-1`` has zero rows and columns there and the row receives no multiplier. ``pivots``, ``ld``
+    (7,) are scratch. (Fixed size, so that the loops compile unrolled.)"""
     n = BLOCK
     for j in range(n):
-        for i in range(n):
-            lmat[i, j] = 0.0
-        lmat[j, j] = 1.0
-        s = a[j, j]
+        s_jj = s[j, j]
+        t = s_jj
         for k in range(j):
-            s -= lmat[j, k] * lmat[j, k] * d[k]
-        if a[j, j] <= 0.0 or s <= _PIVOT_TOL * a[j, j]:
-            d[j] = 0.0
+            ld[k] = fac[b, j, k] * pivots[k]
+            t -= fac[b, j, k] * ld[k]
+        if s_jj <= 0.0 or t <= _PIVOT_TOL * s_jj:
+            pivots[j] = 0.0
+            fac[b, j, j] = 0.0
+            for i in range(j + 1, n):
+                fac[b, i, j] = 0.0
             continue
-        d[j] = s
-        r = 1.0 / s
+        pivots[j] = t
+        r = 1.0 / t
+        fac[b, j, j] = r
         for i in range(j + 1, n):
-            t = a[i, j]
+            t = s[i, j]
             for k in range(j):
-                t -= lmat[i, k] * lmat[j, k] * d[k]
-            lmat[i, j] = t * r
-    # lmat <- its inverse (unit lower triangular) in place: column j, rows top-down, uses the new rows above
-    # and the old entries of later columns
-    for j in range(n):
-        for i in range(j + 1, n):
-            t = lmat[i, j]
-            for k in range(j + 1, i):
-                t += lmat[i, k] * lmat[k, j]
-            lmat[i, j] = -t
-    for k in range(n):
-        d[k] = 1.0 / d[k] if d[k] > 0.0 else 0.0
-    for i in range(n):
-        for j in range(i, n):
-            t = 0.0
-            for k in range(j, n):
-                t += lmat[k, i] * lmat[k, j] * d[k]
-            out[i, j] = t
-            out[j, i] = t
+                t -= fac[b, i, k] * ld[k]
+            fac[b, i, j] = t * r
 
 
 @njit(cache=True)
-def solve_block_tridiagonal(diag, lower, rhs, dinv, y, z):
-    """Solve ``A z = rhs`` for symmetric block-tridiagonal ``A`` by a block LU sweep, O(number of blocks).
+def solve_block_tridiagonal(diag, lower, rhs, fac, y, z):
+    """Solve ``A z = rhs`` for symmetric block-tridiagonal ``A`` by a block ``L D L^T`` sweep, O(number of blocks).
 
-    ``diag`` (B, 7, 7) are the diagonal blocks ``A[b, b]``, ``lower`` (B, 7, 7) the blocks ``A[b, b-1]``
-    (``lower[0]`` unused), ``rhs`` (B, 7). Scratch: ``dinv`` (B, 7, 7), ``y`` (B, 7). Output ``z`` (B, 7).
+    ``diag`` (B, 7, 7) are the diagonal blocks ``A[b, b]`` (their lower triangles are read), ``lower`` (B, 7, 7)
+    the blocks ``A[b, b-1]`` (``lower[0]`` unused), ``rhs`` (B, 7). Scratch: ``fac`` (B, 7, 7) receives each Schur
+    complement's factors (:func:`_factor_block`), ``y`` (B, 7). Output ``z`` (B, 7).
+
+    With ``S_b = L_b D_b L_b^T`` the Schur complements, ``S_b = A[b, b] - G_b D_(b-1)^+ G_b^T`` where
+    ``G_b = A[b, b-1] L_(b-1)^-T``; the forward sweep keeps ``w_b = D_b^+ L_b^-1 y_b`` in ``y`` and the backward
+    sweep gives ``z_b = L_b^-T (w_b - D_b^+ L_b^-1 A[b+1, b]^T z_(b+1))``. No block is inverted: about half the
+    multiplications of inverting each ``S_b`` (``scripts/bench.py``'s ``strands``).
 
     ``lower`` must be zero outside :data:`COUPLING_PATTERN`, as the rod's system is: block ``b``'s stretch-shear
     rows 0-2 couple to any row of block ``b-1`` (through ``x_j``, ``q_j`` and node ``j``'s contact row), its
     bend-twist rows 3-5 only to bend-twist rows 3-5 (through ``q_j``), its contact row 6 to none. The products
-    skip the entries outside the pattern (about 40% fewer multiplications; the same sums, bit for bit).
+    skip the entries outside the pattern (so rows 3-5 of ``G_b`` are zero in columns 0-2, and row 6 is zero).
     """
     k7 = BLOCK
     nb = rhs.shape[0]
-    lmat = np.empty((k7, k7))
-    dvec = np.empty(k7)
-    lfac = np.empty((k7, k7))
     schur = np.empty((k7, k7))
+    g = np.empty((6, k7))
+    hg = np.empty((6, k7))
+    pivots = np.empty(k7)
+    ld = np.empty(k7)
     tv = np.empty(k7)
-    inverse = np.empty((k7, k7))
     for b in range(nb):
         if b == 0:
             for i in range(k7):
-                for j in range(k7):
+                for j in range(i + 1):
                     schur[i, j] = diag[0, i, j]
                 y[0, i] = rhs[0, i]
         else:
-            # lfac = lower[b] dinv[b-1]: row 6 of lower[b] is zero, rows 3-5 use columns 3-5 only
+            # G = lower[b] L^-T (forward substitution along each row: G L^T = lower[b]); hg = G D^+
             for i in range(3):
                 for j in range(k7):
-                    t = 0.0
-                    for k in range(k7):
-                        t += lower[b, i, k] * dinv[b - 1, k, j]
-                    lfac[i, j] = t
+                    t = lower[b, i, j]
+                    for k in range(j):
+                        t -= g[i, k] * fac[b - 1, j, k]
+                    g[i, j] = t
+                    hg[i, j] = t * fac[b - 1, j, j]
             for i in range(3, 6):
-                for j in range(k7):
-                    t = 0.0
-                    for k in range(3, 6):
-                        t += lower[b, i, k] * dinv[b - 1, k, j]
-                    lfac[i, j] = t
-            # schur = diag[b] - lfac lower[b]^T: column j of lower[b]^T is row j of lower[b]
-            for i in range(6):
                 for j in range(3):
+                    g[i, j] = 0.0
+                    hg[i, j] = 0.0
+                for j in range(3, k7):
+                    t = lower[b, i, j] if j < 6 else 0.0
+                    for k in range(3, j):
+                        t -= g[i, k] * fac[b - 1, j, k]
+                    g[i, j] = t
+                    hg[i, j] = t * fac[b - 1, j, j]
+            # the Schur complement's lower triangle; rows 3-5 of G vanish in columns 0-2, its row 6 everywhere
+            for i in range(3):
+                for j in range(i + 1):
                     t = diag[b, i, j]
                     for k in range(k7):
-                        t -= lfac[i, k] * lower[b, j, k]
+                        t -= hg[i, k] * g[j, k]
                     schur[i, j] = t
-                for j in range(3, 6):
+            for i in range(3, 6):
+                for j in range(i + 1):
                     t = diag[b, i, j]
-                    for k in range(3, 6):
-                        t -= lfac[i, k] * lower[b, j, k]
+                    for k in range(3, k7):
+                        t -= hg[i, k] * g[j, k]
                     schur[i, j] = t
-                schur[i, 6] = diag[b, i, 6]
             for j in range(k7):
                 schur[6, j] = diag[b, 6, j]
-            for i in range(6):
+            # y_b = rhs_b - G w_(b-1)
+            for i in range(3):
                 t = rhs[b, i]
                 for k in range(k7):
-                    t -= lfac[i, k] * y[b - 1, k]
+                    t -= g[i, k] * y[b - 1, k]
+                y[b, i] = t
+            for i in range(3, 6):
+                t = rhs[b, i]
+                for k in range(3, k7):
+                    t -= g[i, k] * y[b - 1, k]
                 y[b, i] = t
             y[b, 6] = rhs[b, 6]
-        # one call site, so that the inlined inverse is compiled in once; into a local and copied, as a view
-        # dinv[b] passed on would count references
-        guarded_inverse(schur, lmat, dvec, inverse)
-        for i in range(k7):
+        _factor_block(schur, fac, b, pivots, ld)
+        # w_b = D^+ L^-1 y_b, in place
+        for j in range(k7):
+            t = y[b, j]
+            for k in range(j):
+                t -= fac[b, j, k] * tv[k]
+            tv[j] = t
+        for j in range(k7):
+            y[b, j] = tv[j] * fac[b, j, j]
+    for b in range(nb - 1, -1, -1):
+        if b == nb - 1:
+            for i in range(k7):
+                tv[i] = y[b, i]
+        else:
+            # lower[b+1]^T z_(b+1): columns 0-2 and 6 of lower[b+1] are non-zero in rows 0-2 only
+            for i in range(k7):
+                t = 0.0
+                kmax = 6 if 3 <= i < 6 else 3
+                for k in range(kmax):
+                    t += lower[b + 1, k, i] * z[b + 1, k]
+                tv[i] = t
+            # tv <- w_b - D^+ L^-1 tv
             for j in range(k7):
-                dinv[b, i, j] = inverse[i, j]
-    for i in range(k7):
-        t = 0.0
-        for k in range(k7):
-            t += dinv[nb - 1, i, k] * y[nb - 1, k]
-        z[nb - 1, i] = t
-    for b in range(nb - 2, -1, -1):
-        # tv = y[b] - lower[b+1]^T z[b+1]: columns 0-2 and 6 of lower[b+1] are non-zero in rows 0-2 only
-        for i in range(k7):
-            t = y[b, i]
-            kmax = 6 if 3 <= i < 6 else 3
-            for k in range(kmax):
-                t -= lower[b + 1, k, i] * z[b + 1, k]
-            tv[i] = t
-        for i in range(k7):
-            t = 0.0
-            for k in range(k7):
-                t += dinv[b, i, k] * tv[k]
-            z[b, i] = t
+                t = tv[j]
+                for k in range(j):
+                    t -= fac[b, j, k] * tv[k]
+                tv[j] = t
+            for j in range(k7):
+                tv[j] = y[b, j] - fac[b, j, j] * tv[j]
+        # z_b = L^-T tv
+        for j in range(k7 - 1, -1, -1):
+            t = tv[j]
+            for k in range(j + 1, k7):
+                t -= fac[b, k, j] * z[b, k]
+            z[b, j] = t
 
 
 @njit(cache=True, inline="always")
@@ -818,7 +829,7 @@ def rod_iteration_kernel(rod, needle, start, frames, contacts, system, lam, node
         return residual
     contact_w = rod[5]
     contact_active = contacts[2]
-    diag, lower, dinv, rhs, y, z = system
+    diag, lower, fac, rhs, y, z = system
     for i in range(node_pos.shape[0]):
         if contact_active[i]:
             diag[i, 6, 6] += contact_w[i]
@@ -827,7 +838,7 @@ def rod_iteration_kernel(rod, needle, start, frames, contacts, system, lam, node
     # bounds after the last pass stay in for this iteration (the solution remains consistent) and are dealt
     # with by the next iteration's.
     contact_cap = contacts[4]
-    solve_block_tridiagonal(diag, lower, rhs, dinv, y, z)
+    solve_block_tridiagonal(diag, lower, rhs, fac, y, z)
     for _ in range(_MAX_RELEASE_PASSES):
         released = False
         for i in range(node_pos.shape[0]):
@@ -843,7 +854,7 @@ def rod_iteration_kernel(rod, needle, start, frames, contacts, system, lam, node
                 released = True
         if not released:
             break
-        solve_block_tridiagonal(diag, lower, rhs, dinv, y, z)
+        solve_block_tridiagonal(diag, lower, rhs, fac, y, z)
     apply_rod_solution(rod, needle, frames, contacts, z, lam, node_pos, seg_quat, needle_pos, needle_quat)
     return residual
 
