@@ -226,10 +226,24 @@ def test_assembled_system_matches_dense_finite_difference_jacobians(anisotropic)
         model.bend_compliance, work.contact_obstacle_w, axis_w, axis,
     )  # fmt: skip
     needle_group = (True, needle.body_inv_mass, needle.body_inv_inertia, needle.swage_pos_body)
-    assemble_rod_system(
-        state.node_pos, state.seg_quat, rod, needle_group, work.start, work.frames, work.contacts, work.system,
-        work.lam, ns.body_pos, ns.body_quat, dt,
-    )  # fmt: skip
+
+    def assemble(tolerance, check_first):
+        return assemble_rod_system(
+            state.node_pos, state.seg_quat, rod, needle_group, work.start, work.frames, work.contacts, work.system,
+            work.lam, ns.body_pos, ns.body_quat, dt, tolerance, check_first,
+        )  # fmt: skip
+
+    # checked first, the residual is the built system's; within the tolerance the system is not touched
+    residual = assemble(0.0, False)
+    built = [a.copy() for a in (work.diag, work.lower, work.rhs)]
+    assert residual > 0.0
+    for a in (work.diag, work.lower, work.rhs):
+        a[:] = np.nan
+    assert assemble(residual, True) == residual
+    assert np.isnan(work.diag).all() and np.isnan(work.lower).all() and np.isnan(work.rhs).all()
+    assert assemble(np.nextafter(residual, 0.0), True) == residual
+    for a, b in zip((work.diag, work.lower, work.rhs), built, strict=True):
+        np.testing.assert_array_equal(a, b)
     k = BLOCK
     ndof = 3 * n + 3 * (n - 1) + 6
 

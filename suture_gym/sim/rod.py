@@ -492,7 +492,7 @@ def rod_solve_iteration(
     )
     return rod_iteration_kernel(
         rod, needle, work.start, work.frames, work.contacts, work.system, work.lam, state.node_pos, state.seg_quat,
-        n_pos, n_quat, float(dt), float(tolerance),
+        n_pos, n_quat, float(dt), float(tolerance), True,
     )  # fmt: skip
 
 

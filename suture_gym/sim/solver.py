@@ -705,9 +705,9 @@ class Solver:
         iteration = (rod, needle, work.start, work.frames, work.contacts, work.system, work.lam, rod_state.node_pos,
                      rod_state.seg_quat, needle_pos, needle_quat, float(dt), float(self.rod_tolerance))  # fmt: skip
         state.work.rod_solves = 0
-        for _ in range(self.rod_iterations):
+        for it in range(self.rod_iterations):
             suture_contact_kernel(detect, rod_state.node_pos, work.contacts, coupled, friction)
-            if rod_iteration_kernel(*iteration) <= self.rod_tolerance:
+            if rod_iteration_kernel(*iteration, it > 0) <= self.rod_tolerance:
                 break
             state.work.rod_solves += 1
             if coupled is not None:
