@@ -153,6 +153,13 @@ def _turned(bw, bx, by, bz, tx, ty, tz):
     else:
         s = np.sin(0.5 * angle) / angle
         aw, ax, ay, az = np.cos(0.5 * angle), tx * s, ty * s, tz * s
+    return _premultiplied(aw, ax, ay, az, bw, bx, by, bz)
+
+
+@njit(cache=True, inline="always")
+def _premultiplied(aw, ax, ay, az, bw, bx, by, bz):
+    """``normalize(a b)`` as a tuple (w, x, y, z) for quaternions ``a`` (any non-zero length: a rotation scaled)
+    and ``b``; ``(1, 0, 0, 0)`` if the product vanishes."""
     w = aw * bw - ax * bx - ay * by - az * bz
     x = aw * bx + ax * bw + ay * bz - az * by
     y = aw * by - ax * bz + ay * bw + az * bx
@@ -161,6 +168,15 @@ def _turned(bw, bx, by, bz, tx, ty, tz):
     if n < _TINY:
         return 1.0, 0.0, 0.0, 0.0
     return w / n, x / n, y / n, z / n
+
+
+@njit(cache=True, inline="always")
+def quat_premultiply_row(quats, j, aw, ax, ay, az):
+    """Row ``j`` of ``quats`` (M, 4) <- ``normalize(a quats[j])`` in place, for the quaternion ``a = (aw, ax, ay,
+    az)`` of any non-zero length (a world rotation, unnormalised); indexed as :func:`quat_turn_row`."""
+    quats[j, 0], quats[j, 1], quats[j, 2], quats[j, 3] = _premultiplied(
+        aw, ax, ay, az, quats[j, 0], quats[j, 1], quats[j, 2], quats[j, 3]
+    )
 
 
 @njit(cache=True)

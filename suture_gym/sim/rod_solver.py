@@ -38,6 +38,7 @@ from numba import njit
 
 from suture_gym.sim.quat import (
     cross3,
+    quat_premultiply_row,
     quat_to_matrix,
     quat_to_matrix_into,
     quat_to_matrix_row,
@@ -431,12 +432,11 @@ def align_frames(node_pos, seg_inv_inertia, seg_quat):
             continue
         if s < 1.0e-15:  # antiparallel: half turn about an axis perpendicular to d3
             ax, ay, az = (dz, 0.0, -dx) if abs(dy) > 0.5 else (-dy, dx, 0.0)
-            an = np.sqrt(ax * ax + ay * ay + az * az)
-            tx, ty, tz = np.pi * ax / an, np.pi * ay / an, np.pi * az / an
+            quat_premultiply_row(seg_quat, j, 0.0, ax, ay, az)
         else:
-            angle = np.arctan2(s, c) / s
-            tx, ty, tz = cx * angle, cy * angle, cz * angle
-        quat_turn_row(seg_quat, j, tx, ty, tz)
+            # the turn by the angle between them about d3 x edge, as the unnormalised quaternion (1 + cos, sin
+            # axis) = 2 cos(angle / 2) (cos(angle / 2), sin(angle / 2) axis): no trigonometric call
+            quat_premultiply_row(seg_quat, j, 1.0 + c, cx, cy, cz)
 
 
 @njit(cache=True, inline="always")
