@@ -125,14 +125,36 @@ def _mtv_acc(a, ia, v, iv, c0, scale, out, io):
 
 @njit(cache=True, inline="always")
 def _rot_diag_into(r, ir, d, idd, scale, out, io):
-    """``out[io] = scale * R diag(d) R^T`` (3, 3) for the rotation ``R = r[ir]`` and the diagonal ``d[idd]``."""
+    """``out[io] = scale * R diag(d) R^T`` (3, 3) for the rotation ``R = r[ir]`` and the diagonal ``d[idd]``
+    (symmetric: the upper triangle is computed and mirrored)."""
     for i in range(3):
-        for j in range(3):
-            out[io, i, j] = scale * (
+        for j in range(i, 3):
+            t = scale * (
                 r[ir, i, 0] * d[idd, 0] * r[ir, j, 0]
                 + r[ir, i, 1] * d[idd, 1] * r[ir, j, 1]
                 + r[ir, i, 2] * d[idd, 2] * r[ir, j, 2]
             )
+            out[io, i, j] = t
+            out[io, j, i] = t
+
+
+@njit(cache=True, inline="always")
+def _skew_times_into(x, y, z, a, ia, out, io):
+    """``out[io] = [(x, y, z)]x a[ia]`` (3, 3): each column the cross product of ``(x, y, z)`` with ``a``'s."""
+    for k in range(3):
+        out[io, 0, k] = y * a[ia, 2, k] - z * a[ia, 1, k]
+        out[io, 1, k] = z * a[ia, 0, k] - x * a[ia, 2, k]
+        out[io, 2, k] = x * a[ia, 1, k] - y * a[ia, 0, k]
+
+
+@njit(cache=True, inline="always")
+def _times_skew_t_acc(a, ia, x, y, z, out, io, r0, c0):
+    """``out[io, r0:r0+3, c0:c0+3] += a[ia] [(x, y, z)]x^T``: row ``r`` gains ``(x, y, z)`` crossed with ``a``'s row
+    ``r``."""
+    for r in range(3):
+        out[io, r0 + r, c0 + 0] += y * a[ia, r, 2] - z * a[ia, r, 1]
+        out[io, r0 + r, c0 + 1] += z * a[ia, r, 0] - x * a[ia, r, 2]
+        out[io, r0 + r, c0 + 2] += x * a[ia, r, 1] - y * a[ia, r, 0]
 
 
 @njit(cache=True, inline="always")
@@ -526,9 +548,9 @@ def _frame_blocks(seg_quat, seg_inv_inertia, start, frames, lam, residual):
     seg_quat_start, seg_tension_prev = start
     seg_rot, seg_s, seg_winv, bend_b, seg_h = frames[:5]
     nseg = seg_quat.shape[0]
-    tmp = np.empty((1, 3, 3))
     inertia = np.empty((1, 3))
     winv_mod = np.empty((1, 3))
+    body = np.empty((1, 3))
     g = np.empty((1, 3))
     dth = np.empty((1, 3))
     for j in range(nseg):
@@ -558,11 +580,15 @@ def _frame_blocks(seg_quat, seg_inv_inertia, start, frames, lam, residual):
             twist_stiff += 0.25 * np.sqrt(lam[j + 1, 3] ** 2 + lam[j + 1, 4] ** 2 + lam[j + 1, 5] ** 2)
         winv_mod[0, 2] = 1.0 / (inertia[0, 2] + twist_stiff)
         _rot_diag_into(seg_rot, j, winv_mod, 0, 1.0, seg_winv, j)
-        _rot_diag_into(seg_rot, j, inertia, 0, 1.0, tmp, 0)
         _relative_rotation_vector(seg_quat, j, seg_quat_start, dth, 0)
+        # g = R diag(inertia) R^T dtheta - (J_theta^T lambda)_j, through the body frame
+        for k in range(3):
+            body[0, k] = inertia[0, k] * (
+                seg_rot[j, 0, k] * dth[0, 0] + seg_rot[j, 1, k] * dth[0, 1] + seg_rot[j, 2, k] * dth[0, 2]
+            )
         for i in range(3):
             g[0, i] = -seg_h[j, i]
-        _mv_acc(tmp, 0, dth, 0, 1.0, g, 0)
+        _mv_acc(seg_rot, j, body, 0, 1.0, g, 0)
         for i in range(3):
             seg_h[j, i] = 0.0
         _mv_acc(seg_winv, j, g, 0, 1.0, seg_h, j)
@@ -666,8 +692,9 @@ def _segment_blocks(node_pos, seg_quat, rod, has_needle, frames, system, lam, dt
                 v0, v1, v2 = _bend_values(seg_quat, j, bend_compliance, lam, inv_dt2)
                 residual = max(residual, abs(v0), abs(v1), abs(v2))
             continue
-        _ab_into(seg_s, j, seg_winv, j, tmp, 0)  # tmp = [d3]x W_j
-        _abt_acc(tmp, 0, seg_s, j, 1.0, diag, b, 0, 0)
+        d3x, d3y, d3z = seg_rot[j, 0, 2], seg_rot[j, 1, 2], seg_rot[j, 2, 2]
+        _skew_times_into(d3x, d3y, d3z, seg_winv, j, tmp, 0)  # tmp = [d3]x W_j
+        _times_skew_t_acc(tmp, 0, d3x, d3y, d3z, diag, b, 0, 0)
         w_sum = (node_inv_mass[j] + node_inv_mass[j + 1]) / (l * l)
         for i in range(3):
             val = _stretch_value(node_pos, seg_rot, j, i, compliant, tmp3, lam, l)
