@@ -140,9 +140,10 @@ def test_align_frames_puts_d3_on_the_edges_and_keeps_twist():
 # ---------------------------------------------------------------------------------------------------------
 
 
-def test_block_tridiagonal_solve_matches_dense():
-    """A symmetric positive definite block-tridiagonal system whose coupling blocks fill the rod's pattern."""
-    nb, k = 9, BLOCK
+def block_tridiagonal_system(nb, null_row=None):
+    """A random symmetric positive definite block-tridiagonal system whose coupling blocks fill the rod's pattern,
+    as ``(dense, diag, lower)``; with ``null_row`` (a dense row index) that row and column are zeroed."""
+    k = BLOCK
     dense = np.zeros((nb * k, nb * k))
     for b in range(nb):
         m = RNG.normal(size=(k, k))
@@ -152,11 +153,19 @@ def test_block_tridiagonal_solve_matches_dense():
             dense[b * k : (b + 1) * k, (b - 1) * k : b * k] = low
             dense[(b - 1) * k : b * k, b * k : (b + 1) * k] = low.T
     assert np.all(np.linalg.eigvalsh(dense) > 0.0)
+    if null_row is not None:
+        dense[null_row, :] = 0.0
+        dense[:, null_row] = 0.0
     diag = np.array([dense[b * k : (b + 1) * k, b * k : (b + 1) * k] for b in range(nb)])
     lower = np.zeros_like(diag)
     for b in range(1, nb):
         lower[b] = dense[b * k : (b + 1) * k, (b - 1) * k : b * k]
-    rhs = RNG.normal(size=(nb, k))
+    return dense, diag, lower
+
+
+def test_block_tridiagonal_solve_matches_dense():
+    dense, diag, lower = block_tridiagonal_system(9)
+    rhs = RNG.normal(size=(9, BLOCK))
     z = np.zeros_like(rhs)
     solve_block_tridiagonal(diag, lower, rhs, np.zeros_like(diag), np.zeros_like(rhs), z)
     np.testing.assert_allclose(z.ravel(), np.linalg.solve(dense, rhs.ravel()), rtol=1e-11, atol=1e-14)
@@ -165,27 +174,13 @@ def test_block_tridiagonal_solve_matches_dense():
 def test_block_tridiagonal_solve_drops_a_null_row():
     """A row with a zero diagonal and no coupling (a redundant or fully pinned constraint, or an unused row) gets
     no multiplier, whatever its right-hand side, and the other rows solve the system without it."""
-    nb, k, null = 4, BLOCK, (2, 4)
-    dense = np.zeros((nb * k, nb * k))
-    for b in range(nb):
-        m = RNG.normal(size=(k, k))
-        dense[b * k : (b + 1) * k, b * k : (b + 1) * k] = m @ m.T + 3.0 * k * np.eye(k)
-        if b:
-            low = RNG.normal(size=(k, k)) * COUPLING_PATTERN
-            dense[b * k : (b + 1) * k, (b - 1) * k : b * k] = low
-            dense[(b - 1) * k : b * k, b * k : (b + 1) * k] = low.T
-    assert np.all(np.linalg.eigvalsh(dense) > 0.0)
-    row = null[0] * k + null[1]
-    dense[row, :] = 0.0
-    dense[:, row] = 0.0
-    diag = np.array([dense[b * k : (b + 1) * k, b * k : (b + 1) * k] for b in range(nb)])
-    lower = np.zeros_like(diag)
-    for b in range(1, nb):
-        lower[b] = dense[b * k : (b + 1) * k, (b - 1) * k : b * k]
-    rhs = RNG.normal(size=(nb, k))
+    nb, null = 4, (2, 4)
+    row = null[0] * BLOCK + null[1]
+    dense, diag, lower = block_tridiagonal_system(nb, row)
+    rhs = RNG.normal(size=(nb, BLOCK))
     z = np.zeros_like(rhs)
     solve_block_tridiagonal(diag, lower, rhs, np.zeros_like(diag), np.zeros_like(rhs), z)
-    keep = [i for i in range(nb * k) if i != row]
+    keep = [i for i in range(nb * BLOCK) if i != row]
     expected = np.linalg.solve(dense[np.ix_(keep, keep)], rhs.ravel()[keep])
     assert z[null] == 0.0
     np.testing.assert_allclose(z.ravel()[keep], expected, rtol=1e-10, atol=1e-14)
