@@ -9,7 +9,8 @@ from suture_gym.sim.mesh import box_tet_grid
 from suture_gym.sim.model import Control, TissueMaterial, TissueModel
 from suture_gym.sim.scenes import two_bar_wound
 from suture_gym.sim.solver import Solver
-from suture_gym.sim.tissue import project_face_contacts
+from suture_gym.sim.tissue import face_contact, project_face_contacts
+from suture_gym.sim.tissue_implicit import implicit_tissue
 
 # one boundary triangle in the plane z = 0, outward normal +z
 TRIANGLE = np.array([[0, 1, 2]], np.int32)
@@ -129,6 +130,56 @@ def test_a_bar_thrown_at_the_other_stops_at_its_face():
         depth[contact] = deepest
     assert depth[False] > 1e-4  # into the other face
     assert depth[True] < 1e-6  # held at it
+
+
+def test_the_implicit_tissue_answers_a_contact_with_its_compliance():
+    """With an implicit integrator a touching pair closes its gap through the substep compliance: the impulses
+    between the faces are equal and opposite, the whole tissue moves by its linear response to them
+    (``A0^-1`` times their forces, checked against a fresh solve), so the particle's neighbours move with it (on
+    inverse masses only the pair's four vertices move), and the gap is closed."""
+    scene = with_wound_contact(two_bar_wound(bar_size=(0.02, 0.006, 0.006), cells=(4, 2, 2), gap=0.001,
+                                             gravity=0.0, material=TissueMaterial(youngs_modulus=3.0e5)))  # fmt: skip
+    tissue = scene.model.tissue
+    integrator = implicit_tissue(tissue, "quasi_newton", 1e-3)
+    q = tissue.particle_rest_q.copy()
+    free = tissue.particle_inv_mass > 0.0
+    # push a free particle of the left face 0.3 mm into the right bar, behind the triangle it faces
+    pairs = [(v, f) for v, f in zip(tissue.contact_vertex, tissue.contact_face, strict=True)
+             if free[v] and np.isin(scene.regions["left_wound_face"], v).any()]  # fmt: skip
+    v, f = pairs[0]
+    gap0 = face_contact(tissue.tri_indices, v, f, 1.0, q)[1]
+    normal = face_contact(tissue.tri_indices, v, f, 1.0, q)[2:5]
+    q[v] -= (gap0 + 3e-4) * np.array(normal)
+    assert face_contact(tissue.tri_indices, v, f, tissue.contact_reach, q)[0]
+    before = q.copy()
+    assert integrator.project_face_contacts(q) >= 1
+    touching, gap = face_contact(tissue.tri_indices, v, f, tissue.contact_reach, q)[:2]
+    assert not touching and gap == pytest.approx(0.0, abs=1e-9)
+    force = integrator.external  # the impulses over h^2, N
+    np.testing.assert_allclose(force.sum(axis=0), 0.0, atol=1e-12 * np.abs(force).max())
+    expected = integrator.factor.solve(force.reshape(-1)[integrator.free_index])
+    moved = (q - before).reshape(-1)[integrator.free_index]
+    np.testing.assert_allclose(moved, expected, rtol=0.0, atol=1e-9 * np.abs(expected).max())
+    neighbours = np.unique(tissue.tet_indices[np.isin(tissue.tet_indices, v).any(axis=1)])
+    others = np.setdiff1d(neighbours, np.append(tissue.tri_indices[f], v))
+    assert np.linalg.norm(q[others] - before[others], axis=1).max() > 1e-5  # the neighbourhood moved too
+    # the pair's neighbours on the same face may now touch their triangles, but only by round-off
+    gaps = [face_contact(tissue.tri_indices, a, b, tissue.contact_reach, q)[:2]
+            for a, b in zip(tissue.contact_vertex, tissue.contact_face, strict=True)]  # fmt: skip
+    assert max((-g for touching, g in gaps if touching), default=0.0) < 1e-12
+
+
+def test_the_fuzzed_bang_bang_episode_on_the_soft_fat_wall_does_not_diverge(monkeypatch):
+    """The fuzzer's reproducer (scripts/fuzz.py) that diverged when the wound's contact moved face vertices on
+    their inverse masses: bang-bang wrenches drive the needle, in the soft fat, sideways through the wound."""
+    from conftest import import_script
+
+    fuzz = import_script(monkeypatch, "fuzz")
+    event = {"id": "SutureGym/WoundClosure-v2", "config": "abdominal_wall_wound_closure_soft_fat.yaml",
+             "action_mode": "wrench", "strategy": "bang_bang", "seed": 889009434, "step": 41}  # fmt: skip
+    replayed = fuzz.replay({**event, "kind": "divergences"})
+    kinds = {e["kind"] for e in replayed["events"]}
+    assert not replayed["reproduced"] and "divergences" not in kinds, replayed
 
 
 def test_the_switch_is_validated_and_reaches_the_tissue():

@@ -547,8 +547,9 @@ class Solver:
 
         Every sweep ends with the tissue's rigid supports (:func:`~suture_gym.sim.tissue.project_supports`): the
         base is a contact the rows and the elastic solve cannot push particles through; then, where the model has
-        them, the contacts of a wound's faces with each other
-        (:func:`~suture_gym.sim.tissue.project_face_contacts`)."""
+        them, the contacts of a wound's faces with each other (:func:`~suture_gym.sim.tissue.project_face_contacts`
+        on the particles' inverse masses with XPBD, through the substep compliance with an implicit integrator:
+        :meth:`~suture_gym.sim.tissue_implicit.ImplicitTissue.project_face_contacts`)."""
         tissue, tissue_state = model.tissue, state.tissue
         if self._implicit(model):
             if state.work.tissue_integrator(self.tissue_integrator, dt).sweeps_done:
@@ -572,8 +573,11 @@ class Solver:
             project_supports(tissue.particle_inv_mass, tissue.support_normal, tissue.support_offset,
                              tissue_state.particle_q)  # fmt: skip
         if tissue is not None and tissue.contact_vertex.size:
-            project_face_contacts(tissue.particle_inv_mass, tissue.tri_indices, tissue.contact_vertex,
-                                  tissue.contact_face, tissue.contact_reach, tissue_state.particle_q)  # fmt: skip
+            if self._implicit(model):
+                state.work.tissue_integrator(self.tissue_integrator, dt).project_face_contacts(tissue_state.particle_q)
+            else:
+                project_face_contacts(tissue.particle_inv_mass, tissue.tri_indices, tissue.contact_vertex,
+                                      tissue.contact_face, tissue.contact_reach, tissue_state.particle_q)  # fmt: skip
 
     def _project_implicit(self, model: Model, state: State, dt: float, first_sweep: bool, last_sweep: bool) -> None:
         """:meth:`_project` with an implicit tissue integrator (see there): the elastic solve, the coupling rows

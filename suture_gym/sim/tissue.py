@@ -610,6 +610,40 @@ def supports_violated(inv_mass: np.ndarray, normal: np.ndarray, offset: np.ndarr
 FACE_CONTACT_EDGE = 0.05
 
 
+@njit(cache=True, inline="always")
+def face_contact(tri_indices: np.ndarray, v: int, f: int, reach: float, q: np.ndarray) -> tuple:
+    """Whether particle ``v`` touches boundary triangle ``f`` (its corners ``tri_indices[f]``, counter-clockwise
+    seen from outside) at positions ``q`` (N, 3) m, and where: ``(touching, gap, nx, ny, nz, b0, b1, b2)``.
+
+    ``n`` is the triangle's unit outward normal (into the wound), ``gap = (x_v - x_a) . n`` (m) and ``b`` the
+    barycentrics of ``v``'s projection onto the triangle's plane. They touch where ``-reach < gap < 0`` (behind
+    the face, but not by more than ``reach``, m: beyond it the faces wrapped around each other) and the
+    projection falls inside the triangle or within :data:`FACE_CONTACT_EDGE` of it; ``b`` are then clamped into
+    the triangle (the nearest point of it at an edge or corner) and normalised."""
+    a, b, c = tri_indices[f, 0], tri_indices[f, 1], tri_indices[f, 2]
+    e1x, e1y, e1z = q[b, 0] - q[a, 0], q[b, 1] - q[a, 1], q[b, 2] - q[a, 2]
+    e2x, e2y, e2z = q[c, 0] - q[a, 0], q[c, 1] - q[a, 1], q[c, 2] - q[a, 2]
+    nx, ny, nz = e1y * e2z - e1z * e2y, e1z * e2x - e1x * e2z, e1x * e2y - e1y * e2x
+    area2 = math.sqrt(nx * nx + ny * ny + nz * nz)
+    if area2 <= 0.0:
+        return False, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0
+    nx, ny, nz = nx / area2, ny / area2, nz / area2
+    dx, dy, dz = q[v, 0] - q[a, 0], q[v, 1] - q[a, 1], q[v, 2] - q[a, 2]
+    gap = dx * nx + dy * ny + dz * nz
+    if not (-reach < gap < 0.0):
+        return False, gap, nx, ny, nz, 0.0, 0.0, 0.0
+    # barycentrics of the projection: areas of the sub-triangles over the whole (along n)
+    px, py, pz = dx - gap * nx, dy - gap * ny, dz - gap * nz
+    b1 = ((py * e2z - pz * e2y) * nx + (pz * e2x - px * e2z) * ny + (px * e2y - py * e2x) * nz) / area2
+    b2 = ((e1y * pz - e1z * py) * nx + (e1z * px - e1x * pz) * ny + (e1x * py - e1y * px) * nz) / area2
+    b0 = 1.0 - b1 - b2
+    if b0 < -FACE_CONTACT_EDGE or b1 < -FACE_CONTACT_EDGE or b2 < -FACE_CONTACT_EDGE:
+        return False, gap, nx, ny, nz, b0, b1, b2
+    b0, b1, b2 = max(b0, 0.0), max(b1, 0.0), max(b2, 0.0)
+    total = b0 + b1 + b2
+    return True, gap, nx, ny, nz, b0 / total, b1 / total, b2 / total
+
+
 @njit(cache=True)
 def project_face_contacts(
     inv_mass: np.ndarray,
@@ -620,14 +654,12 @@ def project_face_contacts(
     q: np.ndarray,
 ) -> int:
     """One Gauss-Seidel pass of the tissue's contact with itself across a wound (``TissueModel.contact_vertex``,
-    ``contact_face``): particle ``v`` of a pair may not lie behind the boundary triangle ``f`` facing it, whose
-    outward normal ``n`` points into the wound. Where ``v``'s projection onto the triangle's plane falls inside
-    the triangle (or within :data:`FACE_CONTACT_EDGE` of it; ``b_k`` are then the barycentrics clamped into it)
-    and ``v`` lies behind it, ``-reach < C < 0`` with ``C = (x_v - p) . n`` and ``p = sum_k b_k x_k``, the two are
-    pushed apart along ``n`` with zero compliance (frictionless):
-    ``dlambda = -C / (w_v + sum_k b_k^2 w_k)``, ``x_v += w_v dlambda n``, ``x_k -= w_k b_k dlambda n``, which keeps
-    the mass-weighted mean position. A particle farther behind than ``reach`` (m) is not in contact with that
-    triangle (the faces wrapped around each other).
+    ``contact_face``) on the particles' inverse masses (the XPBD tissue; the implicit integrators answer through
+    their compliance, :meth:`~suture_gym.sim.tissue_implicit.ImplicitTissue.project_face_contacts`): particle
+    ``v`` of a pair may not lie behind the boundary triangle ``f`` facing it (:func:`face_contact`). Where it
+    does, with ``C = (x_v - p) . n`` and ``p = sum_k b_k x_k``, the two are pushed apart along ``n`` with zero
+    compliance (frictionless): ``dlambda = -C / (w_v + sum_k b_k^2 w_k)``, ``x_v += w_v dlambda n``,
+    ``x_k -= w_k b_k dlambda n``, which keeps the mass-weighted mean position.
 
     Args:
         inv_mass: ``(N,)`` inverse masses, 1/kg. tri_indices: ``(F, 3)`` boundary triangles, counter-clockwise
@@ -640,28 +672,10 @@ def project_face_contacts(
     corrected = 0
     for k in range(contact_vertex.shape[0]):
         v, f = contact_vertex[k], contact_face[k]
+        touching, gap, nx, ny, nz, b0, b1, b2 = face_contact(tri_indices, v, f, reach, q)
+        if not touching:
+            continue
         a, b, c = tri_indices[f, 0], tri_indices[f, 1], tri_indices[f, 2]
-        e1x, e1y, e1z = q[b, 0] - q[a, 0], q[b, 1] - q[a, 1], q[b, 2] - q[a, 2]
-        e2x, e2y, e2z = q[c, 0] - q[a, 0], q[c, 1] - q[a, 1], q[c, 2] - q[a, 2]
-        nx, ny, nz = e1y * e2z - e1z * e2y, e1z * e2x - e1x * e2z, e1x * e2y - e1y * e2x
-        area2 = math.sqrt(nx * nx + ny * ny + nz * nz)
-        if area2 <= 0.0:
-            continue
-        nx, ny, nz = nx / area2, ny / area2, nz / area2
-        dx, dy, dz = q[v, 0] - q[a, 0], q[v, 1] - q[a, 1], q[v, 2] - q[a, 2]
-        gap = dx * nx + dy * ny + dz * nz
-        if not (-reach < gap < 0.0):
-            continue
-        # barycentrics of the projection: areas of the sub-triangles over the whole (along n)
-        px, py, pz = dx - gap * nx, dy - gap * ny, dz - gap * nz
-        b1 = ((py * e2z - pz * e2y) * nx + (pz * e2x - px * e2z) * ny + (px * e2y - py * e2x) * nz) / area2
-        b2 = ((e1y * pz - e1z * py) * nx + (e1z * px - e1x * pz) * ny + (e1x * py - e1y * px) * nz) / area2
-        b0 = 1.0 - b1 - b2
-        if b0 < -FACE_CONTACT_EDGE or b1 < -FACE_CONTACT_EDGE or b2 < -FACE_CONTACT_EDGE:
-            continue
-        b0, b1, b2 = max(b0, 0.0), max(b1, 0.0), max(b2, 0.0)  # at an edge or corner: the nearest point in it
-        total = b0 + b1 + b2
-        b0, b1, b2 = b0 / total, b1 / total, b2 / total
         w = inv_mass[v] + b0 * b0 * inv_mass[a] + b1 * b1 * inv_mass[b] + b2 * b2 * inv_mass[c]
         if w <= 0.0:
             continue

@@ -39,7 +39,8 @@ and its impulse moves every touched vertex by its exact linearised response, so 
 Schur complement of the implicit step. :meth:`ImplicitTissue.propagate_rows` then spreads their summed impulses
 over the whole tissue (``A0^-1`` times them, from the cached columns of the touched vertices; there it reproduces
 the rows' moves exactly) and adds their forces to the next sweep's solve: the tissue takes exactly the impulses the
-needle and thread gave it.
+needle and thread gave it. The wound's faces touch each other the same way
+(:meth:`ImplicitTissue.project_face_contacts`).
 Two sweeps per substep (``Solver.iterations = 2``) let the elastic solve carry the rows' load; with one, a tip
 pushed 1 N into 100 kPa tissue falls through it (docs/tissue_integrator.md).
 """
@@ -52,6 +53,9 @@ import cholespy
 import numpy as np
 import scipy.sparse as sp
 from numba import njit
+
+from suture_gym.sim.coupling.compliance import apply_impulse, point_inv_mass
+from suture_gym.sim.tissue import face_contact
 
 #: Integrator names accepted by :class:`~suture_gym.sim.solver.Solver` besides ``"xpbd"``.
 IMPLICIT_INTEGRATORS = ("quasi_newton", "vbd")
@@ -697,6 +701,52 @@ def _spread_impulses(q_before, q, impulse, external, inv_h2, free_index, store, 
     return largest
 
 
+@njit(cache=True)
+def _face_contact_vertices(tri_indices, contact_vertex, contact_face, reach, q, free_particle) -> np.ndarray:
+    """The free particles (``free_particle`` (N,) bool) of the wound's pairs that touch at ``q`` (N, 3) m
+    (:func:`~suture_gym.sim.tissue.face_contact`): each pair's particle and its triangle's corners, ascending
+    ``int32``."""
+    mark = np.zeros(q.shape[0], np.bool_)
+    for k in range(contact_vertex.shape[0]):
+        v, f = contact_vertex[k], contact_face[k]
+        if face_contact(tri_indices, v, f, reach, q)[0]:
+            mark[v] = True
+            for j in range(3):
+                mark[tri_indices[f, j]] = True
+    return np.flatnonzero(mark & free_particle).astype(np.int32)
+
+
+@njit(cache=True)
+def _face_contact_pass(tri_indices, contact_vertex, contact_face, reach, q, tissue) -> int:
+    """One Gauss-Seidel pass over the wound's pairs (:func:`~suture_gym.sim.tissue.face_contact`) against the
+    compliance tuple ``tissue`` (:mod:`~suture_gym.sim.coupling.compliance`): a touching pair's gap ``C`` (m)
+    along the triangle's normal ``n`` closes by an impulse ``dlambda = -C / W`` (kg m) between the particle
+    (weight 1) and the triangle's point (weights ``-b_k``), ``W = n^T (sum_ab w_a w_b C_ab) n``; every vertex of
+    the tuple moves by its response. Frictionless, rigid. Updates ``q`` (N, 3) m; returns the pairs corrected."""
+    idx = np.empty(4, np.int64)
+    weight = np.empty(4)
+    normal = np.empty(3)
+    impulse = np.empty(3)
+    corrected = 0
+    for k in range(contact_vertex.shape[0]):
+        v, f = contact_vertex[k], contact_face[k]
+        touching, gap, nx, ny, nz, b0, b1, b2 = face_contact(tri_indices, v, f, reach, q)
+        if not touching:
+            continue
+        idx[0], idx[1], idx[2], idx[3] = v, tri_indices[f, 0], tri_indices[f, 1], tri_indices[f, 2]
+        weight[0], weight[1], weight[2], weight[3] = 1.0, -b0, -b1, -b2
+        normal[0], normal[1], normal[2] = nx, ny, nz
+        w = point_inv_mass(tissue, idx, weight, 4, normal)
+        if not w > 0.0:
+            continue
+        dlam = -gap / w
+        for i in range(3):
+            impulse[i] = -dlam * normal[i]  # the tissue takes -weight_a * impulse at vertex a: v along +n
+        apply_impulse(tissue, idx, weight, 4, impulse, q)
+        corrected += 1
+    return corrected
+
+
 def stiffness_matrix(tissue, q: np.ndarray | None = None) -> sp.csr_matrix:
     """Global Hessian of the elastic energy ``d2E/dx dx`` at positions ``q`` (default: the rest shape).
 
@@ -863,6 +913,8 @@ class ImplicitTissue:
         self._free_position[self.free_index] = np.arange(self.free_index.size)
         self._slot = np.full(tissue.particle_count, -1, np.int32)
         self._impulse = np.zeros((tissue.particle_count, 3))
+        self._contact_slot = np.full(tissue.particle_count, -1, np.int32)
+        self._contact_impulse = np.zeros((tissue.particle_count, 3))
         self.compliance = (tissue.particle_inv_mass, self._slot, np.zeros(0, np.int32), np.zeros((0, 0)),
                            self._impulse)  # fmt: skip
 
@@ -944,6 +996,43 @@ class ImplicitTissue:
             self._column_of, self.compliance[2],
         )  # fmt: skip
 
+
+    def project_face_contacts(self, q: np.ndarray) -> int:
+        """One pass of the contact between the wound's faces (``TissueModel.contact_vertex``, ``contact_face``,
+        :func:`~suture_gym.sim.tissue.face_contact`) through the substep compliance ``C = A0^-1 / h^2``, as the
+        coupling rows act: each touching pair is pushed apart along its triangle's normal by the impulse that
+        closes its gap with the tissue's linearised response among the touching pairs' vertices (their dense
+        block, from the cached columns of ``A0^-1``), then the impulses are spread over the whole tissue and
+        their forces join :attr:`external` (the next sweep's solve carries them).
+
+        On the particles' inverse masses instead (:func:`~suture_gym.sim.tissue.project_face_contacts`, the XPBD
+        tissue's), a correction moves a face's vertex alone: under the fuzzer's bang-bang actions on the soft-fat
+        abdominal wall a needle pressed one face millimetres into the other, each correction (2-5 mm) strained
+        the vertex's cells by most of their size, the next solve threw it back through the face, and the tissue
+        diverged within ten env steps. Through the compliance the face's neighbourhood moves with it.
+
+        Args:
+            q: ``(N, 3)`` positions, m; projected in place.
+
+        Returns:
+            The number of pairs corrected (0: nothing touched, ``q`` unchanged).
+        """
+        t = self.tissue
+        vertices = _face_contact_vertices(t.tri_indices, t.contact_vertex, t.contact_face, t.contact_reach, q,
+                                          self._free_particle)  # fmt: skip
+        if vertices.size == 0:
+            return 0
+        self._solve_columns(vertices)
+        matrix = _row_compliance(self._column_store, self._free_position, self._column_of, vertices, self.inv_h2,
+                                 self._contact_slot)  # fmt: skip
+        contact = (t.particle_inv_mass, self._contact_slot, vertices, matrix, self._contact_impulse)
+        before = q.copy()
+        corrected = _face_contact_pass(t.tri_indices, t.contact_vertex, t.contact_face, t.contact_reach, q, contact)
+        self.rows_move += _spread_impulses(
+            before, q, self._contact_impulse, self.external, self.inv_h2, self.free_index, self._column_store,
+            self._column_of, vertices,
+        )  # fmt: skip
+        return corrected
 
 class QuasiNewton(ImplicitTissue):
     """Quasi-Newton implicit Euler with the prefactored rest-shape system (see the module docstring)."""
