@@ -996,7 +996,6 @@ class ImplicitTissue:
             self._column_of, self.compliance[2],
         )  # fmt: skip
 
-
     def project_face_contacts(self, q: np.ndarray) -> int:
         """One pass of the contact between the wound's faces (``TissueModel.contact_vertex``, ``contact_face``,
         :func:`~suture_gym.sim.tissue.face_contact`) through the substep compliance ``C = A0^-1 / h^2``, as the
