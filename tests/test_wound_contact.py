@@ -4,6 +4,7 @@ import numpy as np
 import pytest
 
 from suture_gym.envs.config import load_config
+from suture_gym.sim.coupling.compliance import diagonal
 from suture_gym.sim.incision import Incision, incise, with_wound_contact, wound_contact_pairs
 from suture_gym.sim.mesh import box_tet_grid
 from suture_gym.sim.model import Control, TissueMaterial, TissueModel
@@ -20,7 +21,7 @@ CORNERS = np.array([[0.0, 0.0, 0.0], [1e-3, 0.0, 0.0], [0.0, 1e-3, 0.0]])
 def _project(particle, inv_mass=(1.0, 2.0, 3.0, 4.0), reach=5e-4):
     q = np.vstack([CORNERS, particle])
     w = np.array(inv_mass, dtype=float)
-    corrected = project_face_contacts(w, TRIANGLE, np.array([3], np.int32), np.array([0], np.int32), reach, q)
+    corrected = project_face_contacts(TRIANGLE, np.array([3], np.int32), np.array([0], np.int32), reach, q, diagonal(w))
     return q, w, corrected
 
 

@@ -576,8 +576,9 @@ class Solver:
             if self._implicit(model):
                 state.work.tissue_integrator(self.tissue_integrator, dt).project_face_contacts(tissue_state.particle_q)
             else:
-                project_face_contacts(tissue.particle_inv_mass, tissue.tri_indices, tissue.contact_vertex,
-                                      tissue.contact_face, tissue.contact_reach, tissue_state.particle_q)  # fmt: skip
+                project_face_contacts(tissue.tri_indices, tissue.contact_vertex, tissue.contact_face,
+                                      tissue.contact_reach, tissue_state.particle_q,
+                                      state.work.diagonal_compliance)  # fmt: skip
 
     def _project_implicit(self, model: Model, state: State, dt: float, first_sweep: bool, last_sweep: bool) -> None:
         """:meth:`_project` with an implicit tissue integrator (see there): the elastic solve, the coupling rows

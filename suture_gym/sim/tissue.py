@@ -33,6 +33,8 @@ from typing import NamedTuple
 import numpy as np
 from numba import njit
 
+from suture_gym.sim.coupling.compliance import apply_impulse, weighted_inv_mass
+
 #: ``||F||_F`` below which a tet is treated as collapsed to a point and left uncorrected (dimensionless).
 MIN_FROBENIUS = 1e-12
 
@@ -646,44 +648,53 @@ def face_contact(tri_indices: np.ndarray, v: int, f: int, reach: float, q: np.nd
 
 @njit(cache=True)
 def project_face_contacts(
-    inv_mass: np.ndarray,
     tri_indices: np.ndarray,
     contact_vertex: np.ndarray,
     contact_face: np.ndarray,
     reach: float,
     q: np.ndarray,
+    tissue: tuple,
 ) -> int:
     """One Gauss-Seidel pass of the tissue's contact with itself across a wound (``TissueModel.contact_vertex``,
-    ``contact_face``) on the particles' inverse masses (the XPBD tissue; the implicit integrators answer through
-    their compliance, :meth:`~suture_gym.sim.tissue_implicit.ImplicitTissue.project_face_contacts`): particle
-    ``v`` of a pair may not lie behind the boundary triangle ``f`` facing it (:func:`face_contact`). Where it
-    does, with ``C = (x_v - p) . n`` and ``p = sum_k b_k x_k``, the two are pushed apart along ``n`` with zero
-    compliance (frictionless): ``dlambda = -C / (w_v + sum_k b_k^2 w_k)``, ``x_v += w_v dlambda n``,
-    ``x_k -= w_k b_k dlambda n``, which keeps the mass-weighted mean position.
+    ``contact_face``): particle ``v`` of a pair may not lie behind the boundary triangle ``f`` facing it
+    (:func:`face_contact`). Where it does, with ``C = (x_v - p) . n`` and ``p = sum_k b_k x_k``, the two are pushed
+    apart along ``n`` with zero compliance (frictionless) by the impulse ``dlambda = -C / W`` (kg m) between the
+    particle (weight 1) and the triangle's point (weights ``-b_k``), ``W = n^T (sum_ab w_a w_b C_ab) n`` with the
+    tissue's compliance ``C`` (1/kg, the tuple of :mod:`~suture_gym.sim.coupling.compliance`). With the diagonal
+    compliance (the XPBD tissue's) that is ``W = w_v + sum_k b_k^2 w_k``, ``x_v += w_v dlambda n``,
+    ``x_k -= w_k b_k dlambda n``, which keeps the mass-weighted mean position; with an implicit integrator's
+    (:meth:`~suture_gym.sim.tissue_implicit.ImplicitTissue.project_face_contacts`) every vertex of the tuple moves
+    by its response and the impulses are summed in the tuple.
 
     Args:
-        inv_mass: ``(N,)`` inverse masses, 1/kg. tri_indices: ``(F, 3)`` boundary triangles, counter-clockwise
-            seen from outside. contact_vertex, contact_face: ``(P,)`` the pairs. reach: m.
+        tri_indices: ``(F, 3)`` boundary triangles, counter-clockwise seen from outside. contact_vertex,
+            contact_face: ``(P,)`` the pairs. reach: m.
         q: ``(N, 3)`` positions, m; projected in place.
+        tissue: the compliance tuple.
 
     Returns:
         The number of pairs corrected.
     """
+    idx = np.empty(4, np.int64)
+    weight = np.empty(4)
+    normal = np.empty(3)
+    impulse = np.empty(3)
     corrected = 0
     for k in range(contact_vertex.shape[0]):
         v, f = contact_vertex[k], contact_face[k]
         touching, gap, nx, ny, nz, b0, b1, b2 = face_contact(tri_indices, v, f, reach, q)
         if not touching:
             continue
-        a, b, c = tri_indices[f, 0], tri_indices[f, 1], tri_indices[f, 2]
-        w = inv_mass[v] + b0 * b0 * inv_mass[a] + b1 * b1 * inv_mass[b] + b2 * b2 * inv_mass[c]
-        if w <= 0.0:
+        idx[0], idx[1], idx[2], idx[3] = v, tri_indices[f, 0], tri_indices[f, 1], tri_indices[f, 2]
+        weight[0], weight[1], weight[2], weight[3] = 1.0, -b0, -b1, -b2
+        normal[0], normal[1], normal[2] = nx, ny, nz
+        w = weighted_inv_mass(tissue, idx, weight, normal)
+        if not w > 0.0:
             continue
         dlam = -gap / w
-        for node, s in ((v, inv_mass[v]), (a, -b0 * inv_mass[a]), (b, -b1 * inv_mass[b]), (c, -b2 * inv_mass[c])):
-            q[node, 0] += s * dlam * nx
-            q[node, 1] += s * dlam * ny
-            q[node, 2] += s * dlam * nz
+        for i in range(3):
+            impulse[i] = -dlam * normal[i]  # the tissue takes -weight_a * impulse at vertex a: v along +n
+        apply_impulse(tissue, idx, weight, 4, impulse, q)
         corrected += 1
     return corrected
 

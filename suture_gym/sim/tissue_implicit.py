@@ -54,8 +54,7 @@ import numpy as np
 import scipy.sparse as sp
 from numba import njit
 
-from suture_gym.sim.coupling.compliance import apply_impulse, point_inv_mass
-from suture_gym.sim.tissue import face_contact
+from suture_gym.sim.tissue import face_contact, project_face_contacts
 
 #: Integrator names accepted by :class:`~suture_gym.sim.solver.Solver` besides ``"xpbd"``.
 IMPLICIT_INTEGRATORS = ("quasi_newton", "vbd")
@@ -716,37 +715,6 @@ def _face_contact_vertices(tri_indices, contact_vertex, contact_face, reach, q, 
     return np.flatnonzero(mark & free_particle).astype(np.int32)
 
 
-@njit(cache=True)
-def _face_contact_pass(tri_indices, contact_vertex, contact_face, reach, q, tissue) -> int:
-    """One Gauss-Seidel pass over the wound's pairs (:func:`~suture_gym.sim.tissue.face_contact`) against the
-    compliance tuple ``tissue`` (:mod:`~suture_gym.sim.coupling.compliance`): a touching pair's gap ``C`` (m)
-    along the triangle's normal ``n`` closes by an impulse ``dlambda = -C / W`` (kg m) between the particle
-    (weight 1) and the triangle's point (weights ``-b_k``), ``W = n^T (sum_ab w_a w_b C_ab) n``; every vertex of
-    the tuple moves by its response. Frictionless, rigid. Updates ``q`` (N, 3) m; returns the pairs corrected."""
-    idx = np.empty(4, np.int64)
-    weight = np.empty(4)
-    normal = np.empty(3)
-    impulse = np.empty(3)
-    corrected = 0
-    for k in range(contact_vertex.shape[0]):
-        v, f = contact_vertex[k], contact_face[k]
-        touching, gap, nx, ny, nz, b0, b1, b2 = face_contact(tri_indices, v, f, reach, q)
-        if not touching:
-            continue
-        idx[0], idx[1], idx[2], idx[3] = v, tri_indices[f, 0], tri_indices[f, 1], tri_indices[f, 2]
-        weight[0], weight[1], weight[2], weight[3] = 1.0, -b0, -b1, -b2
-        normal[0], normal[1], normal[2] = nx, ny, nz
-        w = point_inv_mass(tissue, idx, weight, 4, normal)
-        if not w > 0.0:
-            continue
-        dlam = -gap / w
-        for i in range(3):
-            impulse[i] = -dlam * normal[i]  # the tissue takes -weight_a * impulse at vertex a: v along +n
-        apply_impulse(tissue, idx, weight, 4, impulse, q)
-        corrected += 1
-    return corrected
-
-
 def stiffness_matrix(tissue, q: np.ndarray | None = None) -> sp.csr_matrix:
     """Global Hessian of the elastic energy ``d2E/dx dx`` at positions ``q`` (default: the rest shape).
 
@@ -1004,11 +972,12 @@ class ImplicitTissue:
         block, from the cached columns of ``A0^-1``), then the impulses are spread over the whole tissue and
         their forces join :attr:`external` (the next sweep's solve carries them).
 
-        On the particles' inverse masses instead (:func:`~suture_gym.sim.tissue.project_face_contacts`, the XPBD
-        tissue's), a correction moves a face's vertex alone: under the fuzzer's bang-bang actions on the soft-fat
-        abdominal wall a needle pressed one face millimetres into the other, each correction (2-5 mm) strained
-        the vertex's cells by most of their size, the next solve threw it back through the face, and the tissue
-        diverged within ten env steps. Through the compliance the face's neighbourhood moves with it.
+        On the particles' inverse masses instead (:func:`~suture_gym.sim.tissue.project_face_contacts` with the
+        diagonal compliance, the XPBD tissue's), a correction moves a face's vertex alone: under the fuzzer's
+        bang-bang actions on the soft-fat abdominal wall a needle pressed one face millimetres into the other, each
+        correction (2-5 mm) strained the vertex's cells by most of their size, the next solve threw it back through
+        the face, and the tissue diverged within ten env steps. Through the compliance the face's neighbourhood
+        moves with it.
 
         Args:
             q: ``(N, 3)`` positions, m; projected in place.
@@ -1026,7 +995,7 @@ class ImplicitTissue:
                                  self._contact_slot)  # fmt: skip
         contact = (t.particle_inv_mass, self._contact_slot, vertices, matrix, self._contact_impulse)
         before = q.copy()
-        corrected = _face_contact_pass(t.tri_indices, t.contact_vertex, t.contact_face, t.contact_reach, q, contact)
+        corrected = project_face_contacts(t.tri_indices, t.contact_vertex, t.contact_face, t.contact_reach, q, contact)
         self.rows_move += _spread_impulses(
             before, q, self._contact_impulse, self.external, self.inv_h2, self.free_index, self._column_store,
             self._column_of, vertices,
