@@ -1002,6 +1002,7 @@ class ImplicitTissue:
         )  # fmt: skip
         return corrected
 
+
 class QuasiNewton(ImplicitTissue):
     """Quasi-Newton implicit Euler with the prefactored rest-shape system (see the module docstring)."""
 
