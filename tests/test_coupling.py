@@ -34,7 +34,6 @@ from suture_gym.sim.coupling import (
     path_spacing_count,
     project_needle_rows,
     project_onto_path,
-    rigid_face_row,
     surface_normal,
     suture_contact_rows,
     suture_friction_rows,
@@ -831,45 +830,6 @@ def test_the_tip_never_punctures_a_rigid_face():
     assert state.punctures == 0 and state.path_count == 0
 
 
-@pytest.mark.parametrize(
-    ("node", "gap", "normal"),
-    [
-        ([2e-4, 3e-4, 5e-4], 5e-4, [0.0, 0.0, 1.0]),  # above the face: its plane's distance
-        ([-3e-4, 2e-4, 4e-4], 5e-4, [-0.6, 0.0, 0.8]),  # past the edge x = 0: the distance to the edge
-        ([-3e-4, 2e-4, -4e-4], -4e-4, [0.0, 0.0, 1.0]),  # past the edge and behind the plane: the plane's
-    ],
-)
-def test_a_rigid_face_row_is_the_distance_to_the_face_turning_round_its_edges(node, gap, normal):
-    a, b, c = np.array([0.0, 0.0, 0.0]), np.array([1e-3, 0.0, 0.0]), np.array([0.0, 1e-3, 0.0])  # normal +z
-    eps, out = 1.0e-5, np.zeros(3)
-    assert rigid_face_row(np.array(node), a, b, c, eps, out) == pytest.approx(gap - eps, rel=1e-12)
-    np.testing.assert_allclose(out, normal, atol=1e-12)
-    assert rigid_face_row(np.array(node), a, a, c, eps, out) == np.inf and not out.any()  # degenerate: no row
-
-
-def test_a_suture_row_on_a_rigid_face_is_made_at_the_current_position_and_pushes_at_most_its_limit():
-    """Detected with the node over the face, the row follows the node round the face's edge, takes no tissue
-    mass, and carries the push limit; a row on a deforming face keeps its detection frame and no limit."""
-    nn, eps, limit_value = 1, 1.0e-5, 3.0e-7
-    tri_vertices = np.array([[0, 1, 2], [3, 4, 5]], dtype=np.int32)
-    face = [[0.0, 0.0, 0.0], [1e-3, 0.0, 0.0], [0.0, 1e-3, 0.0]]  # the plane z = 0, normal +z
-    tissue_q = np.array(face + [[x + 5e-3, y, z] for x, y, z in face])  # the deforming copy beside it
-    rigid = np.array([True, False])
-    row_kind = np.array([ROW_NONE, ROW_TRIANGLE, ROW_TRIANGLE])
-    normals = np.tile([0.0, 0.0, 1.0], (3, 1))
-    rows = (row_kind, np.array([-1, 0, 1], np.int32), np.full((3, 3), 1.0 / 3.0), normals, np.zeros(3))
-    suture_q = np.array([[0.0, 0.0, 1.0], [-3e-4, 2e-4, 4e-4], [4.9e-3, 2e-4, 4e-4]])  # node 1 past the edge
-    gap, normal = np.full(3, np.inf), np.zeros((3, 3))
-    tissue_w, is_tissue, limit = np.zeros(3), np.zeros(3, dtype=np.bool_), np.zeros(3)
-    suture_contact_rows(nn, eps, rows, tri_vertices, rigid, limit_value, tissue_q, diagonal(np.full(6, 2.0)),
-                        suture_q, gap, normal, tissue_w, is_tissue, limit)  # fmt: skip
-    np.testing.assert_array_equal(is_tissue, [False, True, True])
-    assert gap[1] == pytest.approx(5e-4 - eps) and normal[1] == pytest.approx([-0.6, 0.0, 0.8])
-    assert tissue_w[1] == 0.0 and limit[1] == limit_value
-    assert gap[2] == pytest.approx(4e-4 - eps) and normal[2] == pytest.approx([0.0, 0.0, 1.0])
-    assert tissue_w[2] > 0.0 and limit[2] == np.inf and limit[0] == np.inf
-
-
 def test_a_suture_node_gets_the_more_violated_of_its_tissue_row_and_a_static_obstacle():
     """One contact row per suture node: where a static obstacle's gap is the smaller one (a node in a wound gap
     sunk into the base, beside the wound face) the obstacle keeps the row and the tissue takes no reaction."""
@@ -883,9 +843,7 @@ def test_a_suture_node_gets_the_more_violated_of_its_tissue_row_and_a_static_obs
     gap, normal = obstacle_gap.copy(), np.tile([0.0, 0.0, 1.0], (3, 1))
     tissue_w, is_tissue = np.zeros(3), np.zeros(3, dtype=np.bool_)
     tissue = diagonal(np.full(3, 2.0))
-    rigid, limit = np.zeros(1, dtype=np.bool_), np.zeros(3)
-    suture_contact_rows(nn, eps, rows, tri_vertices, rigid, 1.0, tissue_q, tissue, suture_q, gap, normal, tissue_w,
-                        is_tissue, limit)  # fmt: skip
+    suture_contact_rows(nn, eps, rows, tri_vertices, tissue_q, tissue, suture_q, gap, normal, tissue_w, is_tissue)
     np.testing.assert_array_equal(is_tissue, [False, True, False])
     assert gap[1] == pytest.approx(3e-4 - eps) and normal[1] == pytest.approx([0.0, 1.0, 0.0])
     assert tissue_w[1] == pytest.approx(3 * (1.0 / 3.0) ** 2 * 2.0)

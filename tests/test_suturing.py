@@ -6,8 +6,6 @@ pull on the needle closes the wound. The gap is measured between the facing woun
 stitch and 10 mm of the top.
 """
 
-from pathlib import Path
-
 import numpy as np
 import pytest
 
@@ -98,33 +96,15 @@ def test_a_stopper_knot_stops_the_thread_at_the_first_entry_and_the_pull_closes_
     assert run["gap_final_m"] < 0.25 * run["gap_rest_m"]
 
 
-@pytest.mark.parametrize(
-    ("config", "seed", "steps"),
-    [("abdominal_wall_wound_closure.yaml", 15, 332), ("abdominal_wall_wound_closure_soft_fat.yaml", 27, 332)],
-)
-def test_the_thread_over_the_walls_held_edge_does_not_hold_the_needle_back(config, seed, steps):
-    """The scripted expert's WoundClosure on the abdominal wall, up to just after the swage reaches the first
-    entry: the thread then lies over the patch's held (rigid) edge and is pulled taut. Its rows there were
-    planes fixed at detection, which the thread could not pass round the edge within a substep: the needle read
-    406 N (env seed 15) and 239 N (the soft-fat wall, env seed 27) for one substep, against about 2 N before and
-    after; the rows now turn round the edge and push at most the tear force, so the needle reads at most that and
-    the tissue's own rows."""
-    import gymnasium as gym
+def test_the_fuzzed_extreme_episode_on_the_paper_suture_throw_does_not_diverge(monkeypatch):
+    """The fuzzer's reproducer (scripts/fuzz.py) that diverged when a thread row on a rigid face was made to give
+    way at the tear force (tried and reverted, docs/design.md, "Departures from the brief"): held at that bound,
+    the nearly massless thread shot through the bar, a node 35 mm in one iteration of its solve."""
+    from conftest import import_script
 
-    import suture_gym  # noqa: F401
-    from agents.expert import ExpertPolicy
-
-    configs = Path(__file__).resolve().parents[1] / "configs" / "envs"
-    env = gym.make("SutureGym/WoundClosure-v2", config=str(configs / config))
-    obs, _ = env.reset(seed=seed)
-    expert = ExpertPolicy(env)
-    expert.reset()
-    tear_force = env.unwrapped.sim.config.coupling.tear_force
-    peak = 0.0
-    for _ in range(steps):
-        obs, _, terminated, truncated, info = env.step(expert(obs))
-        assert not (terminated or truncated), info
-        peak = max(peak, float(np.linalg.norm(info["haptic_wrench"][:3])))
-    assert env.unwrapped.sim.state.coupling.punctures >= 1  # the stitch has begun
-    assert peak < 2.0 * tear_force  # a row on a rigid face pushes at most the tear force
-    env.close()
+    fuzz = import_script(monkeypatch, "fuzz")
+    event = {"id": "SutureGym/SutureThrowGoal-v2", "config": "suture_throw_paper.yaml", "action_mode": "wrench",
+             "strategy": "extreme", "seed": 329078599, "step": 112}  # fmt: skip
+    replayed = fuzz.replay({**event, "kind": "divergences"})
+    kinds = {e["kind"] for e in replayed["events"]}
+    assert not replayed["reproduced"] and "divergences" not in kinds, replayed

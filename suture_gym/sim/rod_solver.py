@@ -14,10 +14,9 @@ Kernels take their arrays in groups (tuples built once by :class:`~suture_gym.si
 * ``frames``: ``RodWork.frames``, ``(seg_rot, seg_s, seg_winv (N-1, 3, 3), bend_b (N-2, 3, 3), seg_h (N-1, 3),
   att_r (3,), att_winv (3, 3))``;
 * ``contacts``: ``RodWork.contacts``, ``(contact_gap (N,) m, contact_normal (N, 3), contact_active (N,),
-  contact_push (N, 3) m, contact_cap (N,) kg m, contact_limit (N,) kg m)``: row 6 of node ``i`` is a one-sided
-  contact whose accumulated multiplier stays within ``[0, contact_limit[i]]`` where ``contact_cap[i] == 0`` and a
-  two-sided friction row whose accumulated multiplier stays within ``+-contact_cap[i]`` where it is positive
-  (:func:`_contact_rows`);
+  contact_push (N, 3) m, contact_cap (N,) kg m)``: row 6 of node ``i`` is a one-sided contact where
+  ``contact_cap[i] == 0`` and a two-sided friction row whose accumulated multiplier stays within
+  ``+-contact_cap[i]`` where it is positive (:func:`_contact_rows`);
 * ``system``: ``RodWork.system``, ``(diag, lower, fac (N, 7, 7), rhs, y, z (N, 7))``.
 
 The small helpers are compiled into their callers (``inline="always"``) and take their arrays whole with an index
@@ -855,7 +854,7 @@ def apply_rod_solution(rod, needle, frames, contacts, z, lam, node_pos, seg_quat
     node_inv_mass, seg_rest_length = rod[0], rod[1]
     has_needle, needle_inv_mass = needle[0], needle[1]
     _, seg_s, seg_winv, bend_b, seg_h, att_r, att_winv = frames
-    _, contact_normal, _, contact_push, contact_cap = contacts[:5]
+    _, contact_normal, _, contact_push, contact_cap = contacts
     n = node_pos.shape[0]
     nseg = n - 1
     lam += z
@@ -922,11 +921,11 @@ def rod_iteration_kernel(rod, needle, start, frames, contacts, system, lam, node
     for i in range(node_pos.shape[0]):
         if contact_active[i]:
             diag[i, 6, 6] += contact_w[i]
-    # active-set refinement: contacts whose multiplier would turn negative (pull) are released, contacts and
-    # friction rows whose multiplier would pass their limit or cap are held at it, and the system re-solved; rows
-    # still outside their bounds after the last pass stay in for this iteration (the solution remains consistent)
-    # and are dealt with by the next iteration's.
-    contact_cap, contact_limit = contacts[4], contacts[5]
+    # active-set refinement: contacts whose multiplier would turn negative (pull) are released, friction rows
+    # whose multiplier would pass their cap are held at it, and the system re-solved; rows still outside their
+    # bounds after the last pass stay in for this iteration (the solution remains consistent) and are dealt
+    # with by the next iteration's.
+    contact_cap = contacts[4]
     solve_block_tridiagonal(diag, lower, rhs, fac, y, z)
     for _ in range(_MAX_RELEASE_PASSES):
         released = False
@@ -940,9 +939,6 @@ def rod_iteration_kernel(rod, needle, start, frames, contacts, system, lam, node
                 released = True
             elif cap == 0.0 and total < 0.0:
                 fix_contact_step(i, -lam[i, 6], contact_active, diag, lower, rhs)
-                released = True
-            elif cap == 0.0 and total > contact_limit[i]:
-                fix_contact_step(i, contact_limit[i] - lam[i, 6], contact_active, diag, lower, rhs)
                 released = True
         if not released:
             break

@@ -215,9 +215,8 @@ def suture_contact_kernel(detect, node_pos, contacts, coupled, friction):
             the model's masses, the thread's radius and :func:`~suture_gym.sim.rod.obstacle_arrays`.
         node_pos: ``(Ns, 3)`` m. contacts: :class:`~suture_gym.sim.rod.RodWork`'s ``contacts`` group, written.
         coupled: ``None`` without tissue; else ``(needle_node_count, resistance_eps m, contact_rows,
-            tri_vertices (T, 3), tri_rigid (T,) bool, the most a row on a rigid face pushes (kg m: the tear force
-            times dt^2), tissue_q (N, 3) m, tissue compliance, contact_w (Ns,) 1/kg, contact_tissue (Ns,) bool,
-            row_lambda (M,) kg m)``.
+            tri_vertices (T, 3), tissue_q (N, 3) m, tissue compliance, contact_w (Ns,) 1/kg, contact_tissue (Ns,)
+            bool, row_lambda (M,) kg m)``.
         friction: ``None`` without thread friction; else ``(friction_rows, row_friction_lambda (M,))``
             (needs ``coupled``).
     """
@@ -227,11 +226,9 @@ def suture_contact_kernel(detect, node_pos, contacts, coupled, friction):
     detect_contacts_kernel(node_pos, detect[0], detect[1], detect[2], detect[3], detect[4], detect[5], contact_gap,
                            contact_normal)  # fmt: skip
     if coupled is not None:
-        nn, eps, contact_rows, tri_vertices, tri_rigid, rigid_limit, tissue_q, tissue, contact_w, contact_tissue, _ = (
-            coupled
-        )
-        suture_contact_rows(nn, eps, contact_rows, tri_vertices, tri_rigid, rigid_limit, tissue_q, tissue, node_pos,
-                            contact_gap, contact_normal, contact_w, contact_tissue, contacts[5])  # fmt: skip
+        nn, eps, contact_rows, tri_vertices, tissue_q, tissue, contact_w, contact_tissue, _ = coupled
+        suture_contact_rows(nn, eps, contact_rows, tri_vertices, tissue_q, tissue, node_pos, contact_gap,
+                            contact_normal, contact_w, contact_tissue)  # fmt: skip
         if friction is not None:
             suture_friction_rows(nn, friction[0], tissue_q, tissue, node_pos, contact_gap, contact_normal, contact_w,
                                  contact_cap)  # fmt: skip
@@ -243,7 +240,7 @@ def suture_reaction_kernel(contacts, z, coupled, friction):
     multiplier steps; :func:`~suture_gym.sim.coupling.apply_contact_reaction`,
     :func:`~suture_gym.sim.coupling.apply_friction_reaction`); arguments as :func:`suture_contact_kernel`'s."""
     contact_normal, contact_cap = contacts[1], contacts[4]
-    nn, _, contact_rows, tri_vertices, _, _, tissue_q, tissue, _, contact_tissue, row_lambda = coupled
+    nn, _, contact_rows, tri_vertices, tissue_q, tissue, _, contact_tissue, row_lambda = coupled
     apply_contact_reaction(nn, contact_rows, tri_vertices, contact_normal, z, contact_tissue, tissue, row_lambda,
                            tissue_q)  # fmt: skip
     if friction is not None:
@@ -697,8 +694,8 @@ class Solver:
             tissue_q, tissue_w = state.tissue.particle_q, state.work.compliance
             coupled = (
                 coupling.needle_node_count, coupling.params.resistance_eps, cwork.contact_rows,
-                coupling.surface.tri_vertices, coupling.tri_rigid, coupling.params.tear_force * dt * dt, tissue_q,
-                tissue_w, cwork.suture_contact_w, cwork.suture_contact_tissue, cwork.row_lambda,
+                coupling.surface.tri_vertices, tissue_q, tissue_w, cwork.suture_contact_w, cwork.suture_contact_tissue,
+                cwork.row_lambda,
             )  # fmt: skip
             # thread friction rows only when the thread has friction (the default has none)
             if coupling.params.suture_axial_friction > 0.0:

@@ -89,10 +89,7 @@ Projection (called by :class:`~suture_gym.sim.solver.Solver`)
   the tissue by its share. A node has one contact row: a static obstacle's (the base) takes it where its gap
   is the smaller one. Triangles on a support plane (``CouplingModel.tri_on_support``) give suture nodes no rows,
   nor do rigid triangles to suture nodes inside the tissue (the support is behind them: such a node came in
-  through a free face, and a row out through the rigid one hooks the thread on the support). A row on a rigid
-  triangle is made afresh at every iteration of the solve, as the distance to the face turning round its edges
-  (:func:`rigid_face_row`), and pushes at most the tear force: the solve slides a thread round a held edge
-  instead of holding the needle back with it.
+  through a free face, and a row out through the rigid one hooks the thread on the support).
 * Node-access rows are Gauss-Seidel on the strand piece centred on the access point (:func:`project_access_rows`).
 * Thread friction in the paths (``suture_axial_friction``, off by default) is a bounded row of the rod's direct
   solve per suture node on a path (:func:`suture_friction_rows`, :func:`apply_friction_reaction`): along its
@@ -159,7 +156,6 @@ from suture_gym.sim.coupling.suture_projection import (
     embedded_inv_mass,
     project_access_rows,
     project_suture_path_rows,
-    rigid_face_row,
     suture_contact_rows,
     suture_friction_rows,
 )
@@ -203,7 +199,6 @@ __all__ = [
     "project_suture_path_rows",
     "release_path",
     "rigid_crossings",
-    "rigid_face_row",
     "strand_positions_kernel",
     "surface_normal",
     "surface_point_tet",

@@ -5,7 +5,6 @@ from __future__ import annotations
 import numpy as np
 from numba import njit
 
-from suture_gym.sim.collision_kernels import closest_point_triangle
 from suture_gym.sim.coupling.compliance import (
     apply_impulse,
     is_diagonal,
@@ -182,31 +181,8 @@ def project_suture_path_rows(
 
 
 @njit(cache=True)
-def rigid_face_row(q, a, b, c, eps, out_normal):
-    """A node's contact row with the rigid triangle ``abc`` at the node's position ``q`` (all (3,) m): with
-    ``p`` the triangle's point closest to ``q`` and ``n_f`` its unit face normal, ``C = |q - p| - eps`` along
-    ``n = (q - p) / |q - p|`` while ``q`` lies in front of the face's plane (past an edge this is the distance
-    to the edge, its direction turning round it), else ``C = n_f . (q - p) - eps`` along ``n_f``. Returns ``C``
-    (m); writes ``out_normal`` (3,), ``grad_q C``. A degenerate triangle gives ``C = inf`` (no row)."""
-    nf = cross3(b - a, c - a)
-    length = np.sqrt(nf @ nf)
-    if not length > 0.0:
-        out_normal[:] = 0.0
-        return np.inf
-    nf /= length
-    p = closest_point_triangle(q, a, b, c)[0]
-    d = q - p
-    distance = np.sqrt(d @ d)
-    if d @ nf > 0.0 and distance > 0.0:
-        out_normal[:] = d / distance
-        return distance - eps
-    out_normal[:] = nf
-    return d @ nf - eps
-
-
-@njit(cache=True)
-def suture_contact_rows(needle_node_count, eps, contact_rows, tri_vertices, tri_rigid, rigid_limit, tissue_q, tissue,
-                        suture_q, out_gap, out_normal, out_tissue_w, out_is_tissue, out_limit):  # fmt: skip
+def suture_contact_rows(needle_node_count, eps, contact_rows, tri_vertices, tissue_q, tissue, suture_q, out_gap,
+                        out_normal, out_tissue_w, out_is_tissue):  # fmt: skip
     """The suture nodes' contact rows (:func:`node_surface_constraint` in the row's frame) as the rod's
     one-sided contact rows: ``gap = C - floor`` (``row_floor``, :func:`contact_floors`) at the current
     positions, ``normal = n``, and the generalised inverse mass of the surface point ``sum_v b_v^2 w_v`` (1/kg)
@@ -214,29 +190,13 @@ def suture_contact_rows(needle_node_count, eps, contact_rows, tri_vertices, tri_
     ``out_normal`` (+inf, or a static obstacle's, :func:`~suture_gym.sim.rod.rod_detect_contacts`) and get
     ``out_tissue_w = 0``; so does a node whose static obstacle's gap is the smaller one (a node has one
     contact row: the more violated constraint takes it, e.g. the base under a wound rather than the wound
-    face beside it). Writes ``out_gap`` (Ns,), ``out_normal`` (Ns, 3), ``out_tissue_w`` (Ns,),
-    ``out_is_tissue`` (Ns,) bool, whether the node's row is its node-triangle row, and ``out_limit`` (Ns,) kg m,
-    the most the row may push (``inf`` but on rigid faces).
-
-    A node-triangle row on a rigid face (``tri_rigid`` (F,) bool, a face glued to a support) is made afresh at
-    every call, at the node's current position (:func:`rigid_face_row`): the distance to the face's closest
-    point, along the direction to it while the node is in front of the face's plane, so a thread pulled round a
-    held edge slides round it over the solve's iterations. With the plane fixed at detection the node could not
-    pass the plane beyond the edge in that substep: on the abdominal wall a thread hanging over the held edge,
-    pulled taut as the swage entered the first entry, held the needle back with 406 N for one substep
-    (WoundClosure's scripted expert, env seed 15). Such a row pushes at most ``rigid_limit`` (kg m): the thread
-    is nearly massless, so where its solve cannot slide a node round the edge within its iterations the whole
-    correction falls on the needle (140 N for one substep on the soft-fat wall, env seed 27, with the rows made
-    afresh); held at the limit the node passes the face, and inside the tissue beside a rigid face it has no row
-    (:func:`~suture_gym.sim.coupling.detection.build_node_rows`). A rigid face does not move: such a row has no
-    tissue inverse mass."""
+    face beside it). Writes ``out_gap`` (Ns,), ``out_normal`` (Ns, 3), ``out_tissue_w`` (Ns,) and
+    ``out_is_tissue`` (Ns,) bool, whether the node's row is its node-triangle row."""
     row_kind, row_tri, row_bary, row_contact_normal, row_floor = contact_rows
     nn = needle_node_count
-    normal = np.empty(3)
     for j in range(suture_q.shape[0]):
         out_tissue_w[j] = 0.0
         out_is_tissue[j] = False
-        out_limit[j] = np.inf
         if j == 0:
             continue
         i = nn + j - 1
@@ -244,16 +204,6 @@ def suture_contact_rows(needle_node_count, eps, contact_rows, tri_vertices, tri_
             continue
         tri = row_tri[i]
         b = row_bary[i]
-        if row_kind[i] == ROW_TRIANGLE and tri_rigid[tri]:
-            c = rigid_face_row(suture_q[j], tissue_q[tri_vertices[tri, 0]], tissue_q[tri_vertices[tri, 1]],
-                               tissue_q[tri_vertices[tri, 2]], eps, normal)  # fmt: skip
-            if not c - row_floor[i] < out_gap[j]:
-                continue
-            out_is_tissue[j] = True
-            out_gap[j] = c - row_floor[i]
-            out_normal[j] = normal
-            out_limit[j] = rigid_limit
-            continue  # a rigid face does not move: no inverse mass
         c = node_surface_constraint(
             suture_q[j],
             tissue_q[tri_vertices[tri, 0]],
