@@ -16,3 +16,12 @@ def import_script(monkeypatch, name: str):
         monkeypatch.setenv(var, "1")
     monkeypatch.syspath_prepend(str(Path(__file__).resolve().parents[1] / "scripts"))
     return importlib.import_module(name)
+
+
+def assert_fuzz_event_does_not_diverge(monkeypatch, event: dict) -> None:
+    """Replay a divergence the fuzzer found (``scripts/fuzz.py --replay``; ``event`` without its ``kind``) and
+    assert that it no longer diverges."""
+    fuzz = import_script(monkeypatch, "fuzz")
+    replayed = fuzz.replay({**event, "kind": "divergences"})
+    kinds = {e["kind"] for e in replayed["events"]}
+    assert not replayed["reproduced"] and "divergences" not in kinds, replayed
