@@ -1,0 +1,124 @@
+"""Time env ids of this checkout against env ids of an earlier commit, on this machine, with one workload.
+
+Issue 13 asks that the environments at 100 kPa and up run at least as many env steps per second as the 3 kPa ones
+measured before the change, on the same machine. ``scripts/bench.py`` times only this checkout; this script checks
+the earlier commit out into a temporary git worktree and times each pair of ids, ``OLD=NEW``, in separate processes
+(each with its own numba cache), alternating old and new for ``--rounds`` rounds. Both run on this checkout's
+virtual environment, so the earlier commit must import with today's dependencies.
+
+Workload (the one ``env_*_stiff`` in ``scripts/bench.py`` uses): the registered default config, 50 seeded random
+warm-up steps, then 3 timed runs of 600 seeded random steps (env and actions seeded 0, resets included); an id's
+figure is its best run, and the pair's ``ratio`` is new over old of the best over all rounds.
+
+Usage::
+
+    python scripts/compare_env_rates.py --ref 5eedff7 \\
+        SutureGym/NeedleInsert-v0=SutureGym/NeedleInsert-v2 SutureGym/WoundClosure-v0=SutureGym/WoundClosure-v2
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import os
+import subprocess
+import sys
+import tempfile
+from pathlib import Path
+
+from tqdm import tqdm
+
+ROOT = Path(__file__).resolve().parents[1]
+
+#: The timing run, executed with ``python -c`` in the checkout under test (it uses only Gymnasium's API).
+TIMING = """
+import json, sys, time
+import gymnasium as gym
+import suture_gym.envs
+env = gym.make(sys.argv[1])
+env.action_space.seed(1)
+env.reset(seed=1)
+for _ in range(50):
+    *_, terminated, truncated, _ = env.step(env.action_space.sample())
+    if terminated or truncated:
+        env.reset()
+rates = []
+for _ in range(3):
+    env.action_space.seed(0)
+    env.reset(seed=0)
+    start = time.perf_counter()
+    for _ in range(600):
+        *_, terminated, truncated, _ = env.step(env.action_space.sample())
+        if terminated or truncated:
+            env.reset()
+    rates.append(600 / (time.perf_counter() - start))
+print(json.dumps(rates))
+"""
+
+
+def time_id(env_id: str, checkout: Path, cache: Path) -> list[float]:
+    """Env steps per second of ``env_id``'s three timed runs, imported from ``checkout`` (numba cache ``cache``)."""
+    env = {**os.environ, "PYTHONPATH": str(checkout), "NUMBA_CACHE_DIR": str(cache), "NUMBA_NUM_THREADS": "1"}
+    done = subprocess.run([sys.executable, "-c", TIMING, env_id], cwd=checkout, env=env, capture_output=True,
+                          text=True)  # fmt: skip
+    if done.returncode != 0:
+        raise RuntimeError(f"timing {env_id} in {checkout} failed:\n{done.stderr[-2000:]}")
+    return json.loads(done.stdout.strip().splitlines()[-1])
+
+
+def main(argv: list[str] | None = None) -> int:
+    parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    parser.add_argument("--ref", required=True, help="the earlier commit (any git revision)")
+    parser.add_argument("pairs", nargs="+", metavar="OLD=NEW", help="an id of --ref and an id of this checkout")
+    parser.add_argument("--rounds", type=int, default=2, help="alternating rounds (default 2)")
+    parser.add_argument("--no-progress", action="store_true", help="hide the progress bar (stderr)")
+    args = parser.parse_args(argv)
+    if args.rounds < 1:
+        parser.error(f"--rounds must be >= 1, got {args.rounds}")
+    pairs = []
+    for pair in args.pairs:
+        old, sep, new = pair.partition("=")
+        if not sep or not old or not new:
+            parser.error(f"a pair is OLD_ID=NEW_ID, got {pair!r}")
+        pairs.append((old, new))
+    commit = subprocess.run(["git", "rev-parse", "--verify", f"{args.ref}^{{commit}}"], cwd=ROOT,
+                            capture_output=True, text=True)  # fmt: skip
+    if commit.returncode != 0:
+        parser.error(f"--ref {args.ref!r} is not a commit of this repository")
+    sha = commit.stdout.strip()
+    with tempfile.TemporaryDirectory(prefix="suture_gym_compare_") as tmp:
+        worktree = Path(tmp) / "old"
+        subprocess.run(["git", "worktree", "add", "--detach", str(worktree), sha], cwd=ROOT, check=True,
+                       capture_output=True)  # fmt: skip
+        try:
+            rates = {pair: {"old": [], "new": []} for pair in pairs}
+            with tqdm(total=2 * len(pairs) * args.rounds, desc="timing", disable=args.no_progress) as bar:
+                for _ in range(args.rounds):
+                    for old, new in pairs:
+                        rates[old, new]["old"] += time_id(old, worktree, Path(tmp) / "cache_old")
+                        bar.update()
+                        rates[old, new]["new"] += time_id(new, ROOT, Path(tmp) / "cache_new")
+                        bar.update()
+        finally:
+            subprocess.run(["git", "worktree", "remove", "--force", str(worktree)], cwd=ROOT, capture_output=True)
+    head = subprocess.run(["git", "rev-parse", "HEAD"], cwd=ROOT, capture_output=True, text=True).stdout.strip()
+    results = [
+        {
+            "old_id": old,
+            "new_id": new,
+            "old_commit": sha,
+            "new_commit": head,
+            "old_env_steps_per_s": max(r["old"]),
+            "new_env_steps_per_s": max(r["new"]),
+            "ratio": max(r["new"]) / max(r["old"]),
+            "old_runs": r["old"],
+            "new_runs": r["new"],
+        }
+        for (old, new), r in rates.items()
+    ]
+    print(json.dumps(results, indent=2))
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())
