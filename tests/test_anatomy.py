@@ -1,11 +1,18 @@
 """The anatomical scenes at coarse resolution: a curved layered abdominal wall and a hand, each with its wound."""
 
+from pathlib import Path
+
 import numpy as np
 import pytest
 
+from suture_gym.envs.config import load_config, read_yaml
+from suture_gym.measure.anatomy import SCENES
+from suture_gym.measure.tissue_stiff import SCENE_SUBSTEP
 from suture_gym.sim.anatomy import ABDOMINAL_LAYERS, abdominal_wall, curved_slab, hand, hand_surface
 from suture_gym.sim.mesh import signed_volumes
 from suture_gym.sim.scenes import wound_gap
+
+CONFIGS = Path(__file__).parents[1] / "configs" / "envs"
 
 
 def test_curved_slab_wraps_the_box_onto_concentric_cylinders():
@@ -60,3 +67,20 @@ def test_hand_has_a_wound_on_its_back():
     top_left, top_right = left[rest[left, 2] == mouth], right[rest[right, 2] == mouth]
     assert rest[top_right, 1].mean() - rest[top_left, 1].mean() == pytest.approx(0.0015)
     assert 0.0 < wound_gap(scene) < 0.0015
+
+
+@pytest.mark.parametrize(
+    ("benchmark", "config"),
+    [("paper_abdominal_wall", "abdominal_wall_suture_throw.yaml"), ("paper_hand", "hand_suture_throw.yaml")],
+)
+def test_the_scene_benchmarks_time_the_shipped_configs_scene_and_substep(benchmark, config):
+    shipped = load_config("suture_throw", CONFIGS / config)
+    timed = load_config("suture_throw", SCENES[benchmark])
+    assert timed.scene == shipped.scene and timed.solver == shipped.solver
+    assert shipped.solver.dt * shipped.solver.substeps == pytest.approx(0.005)  # the default control period
+
+
+def test_the_scene_substep_check_runs_at_the_largest_substep_of_the_shipped_configs():
+    solvers = [read_yaml(path).get("solver", {}) for path in CONFIGS.glob("*.yaml")]
+    largest = max(solvers, key=lambda solver: solver.get("dt", 0.0))
+    assert (largest["dt"], largest["substeps"]) == SCENE_SUBSTEP

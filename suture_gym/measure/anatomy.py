@@ -1,12 +1,13 @@
 """Benchmarks of the seed paper's anatomical scenes with the full suturing load: ``paper_abdominal_wall`` and
 ``paper_hand`` (paper Table 1: 38 and 21 fps with a 30-node needle and a 200-node suture).
 
-Each builds ``SutureGym/SutureThrow-v2`` on the scene of its shipped config (``configs/envs/abdominal_wall_*.yaml``,
-``configs/envs/hand_suture_throw.yaml``, without randomisation) with a 200-node, 20 cm thread, drives the
-scripted surgeon until the needle has come out at the far edge (through both wound faces), then times
-:data:`TIMED_STEPS` env steps of the surgeon turning the needle out and pulling the thread through the wound
-(numba compilation and the drive excluded). ``realtime_factor`` (``scripts/bench.py``) is simulated seconds per
-wall second: the paper's figures are real time (factor 1) at 38 and 21 fps.
+Each builds ``SutureGym/SutureThrow-v2`` on the scene and with the substep of its shipped config
+(``configs/envs/abdominal_wall_suture_throw.yaml``: three substeps of 5/3 ms an env step;
+``configs/envs/hand_suture_throw.yaml``: two of 2.5 ms) with a 200-node, 20 cm thread, drives the scripted surgeon
+until the needle has come out at the far edge (through both wound faces), then times :data:`TIMED_STEPS` env steps
+of the surgeon turning the needle out and pulling the thread through the wound (numba compilation and the drive
+excluded). ``realtime_factor`` (``scripts/bench.py``) is simulated seconds per wall second: the paper's figures are
+real time (factor 1) at 38 and 21 fps.
 """
 
 from __future__ import annotations
@@ -24,16 +25,23 @@ from suture_gym.tasks.surgeon import ScriptedSurgeon
 TIMED_STEPS = 200
 #: The paper's suture: 200 nodes (20 cm here, 1 mm segments).
 SUTURE = {"node_count": 200, "length": 0.2}
-#: The scenes of the shipped configs (configs/envs/), without their randomisation.
+#: The scenes of the shipped SutureThrow configs (configs/envs/): their ``scene`` and ``solver`` sections
+#: (``tests/test_anatomy.py`` checks that they match).
 SCENES = {
-    "paper_abdominal_wall": {"kind": "abdominal_wall", "size": (0.06, 0.04, 0.012), "grid": (14, 10, 6),
-                             "gap": 0.002, "layer_thickness": (0.002, 0.006), "layer_stiffness": (1.0, 1.0, 0.5)},
-    "paper_hand": {"kind": "hand", "cell_size": 0.0058, "gap": 0.0015},
+    "paper_abdominal_wall": {
+        "scene": {"kind": "abdominal_wall", "size": (0.06, 0.04, 0.012), "grid": (14, 10, 6), "gap": 0.002,
+                  "layer_thickness": (0.002, 0.006), "layer_stiffness": (1.0, 1.0, 0.5)},
+        "solver": {"dt": 0.005 / 3, "substeps": 3},
+    },
+    "paper_hand": {
+        "scene": {"kind": "hand", "cell_size": 0.0058, "gap": 0.0015},
+        "solver": {"dt": 0.0025, "substeps": 2},
+    },
 }
 
 
-def _bench_scene(scene: dict) -> dict:
-    env = gym.make("SutureGym/SutureThrow-v2", config={"scene": scene, "suture": SUTURE})
+def _bench_scene(sections: dict) -> dict:
+    env = gym.make("SutureGym/SutureThrow-v2", config={**sections, "suture": SUTURE})
     unwrapped = env.unwrapped
     sim = unwrapped.sim
     surgeon = ScriptedSurgeon(env, turn_rate=2.0)
@@ -79,11 +87,11 @@ def _bench_scene(scene: dict) -> dict:
         "suture_nodes_in_paths": int(np.count_nonzero(state.coupling.strand_status[needle_nodes:] == NODE_IN)),
         "diverged": bool(state.diverged),
         "tissue_integrator": unwrapped.config.solver.tissue_integrator,
-        "scene_config": scene,
+        "scene_config": sections["scene"],
     }
     env.close()
     return result
 
 
-for _name, _scene in SCENES.items():
-    benchmark(_name)(lambda scene=_scene: _bench_scene(scene))
+for _name, _sections in SCENES.items():
+    benchmark(_name)(lambda sections=_sections: _bench_scene(sections))
