@@ -46,6 +46,22 @@ def is_diagonal(tissue) -> bool:
 
 
 @njit(cache=True)
+def answers_for(tissue, idx, count) -> bool:
+    """Whether ``tissue`` answers for every free vertex of ``idx[:count]``: always with the diagonal compliance;
+    with a block, whether each of them (inverse mass above 0) is in ``S``. A point with a free vertex outside
+    ``S`` has no true generalised inverse mass here: summed over the vertices of ``S`` alone it can be the
+    compliance of one vertex times a weight of 1e-3 squared, and the impulse that closes a gap with it throws
+    that vertex by the gap over the weight."""
+    if is_diagonal(tissue):
+        return True
+    w, slot = tissue[0], tissue[1]
+    for a in range(count):
+        if w[idx[a]] > 0.0 and slot[idx[a]] < 0:
+            return False
+    return True
+
+
+@njit(cache=True)
 def point_compliance(tissue, idx, weight, count, out):
     """``out`` (3, 3) = ``sum_ab b_a b_b C_ab`` (1/kg) of the point of vertices ``idx[:count]`` and weights
     ``weight[:count]`` (diagonal: ``sum_a b_a^2 w_a I``)."""
