@@ -6,8 +6,9 @@ Each builds ``SutureGym/SutureThrow-v2`` on the scene and with the substep of it
 ``configs/envs/hand_suture_throw.yaml``: two of 2.5 ms) with a 200-node, 20 cm thread, drives the scripted surgeon
 until the needle has come out at the far edge (through both wound faces), then times :data:`TIMED_STEPS` env steps
 of the surgeon turning the needle out and pulling the thread through the wound (numba compilation and the drive
-excluded). ``realtime_factor`` (``scripts/bench.py``) is simulated seconds per wall second: the paper's figures are
-real time (factor 1) at 38 and 21 fps.
+excluded; ``env_steps_per_s`` times ``env.step``, the scripted surgeon's own time per step, the driver's as a haptic
+device's or a policy's would be, is ``surgeon_ms_median``). ``realtime_factor`` (``scripts/bench.py``) is simulated
+seconds per wall second: the paper's figures are real time (factor 1) at 38 and 21 fps.
 """
 
 from __future__ import annotations
@@ -55,14 +56,18 @@ def _bench_scene(sections: dict) -> dict:
     sim.timings = {}
     wall = np.empty(TIMED_STEPS)
     solver = np.empty(TIMED_STEPS)
+    driver = np.empty(TIMED_STEPS)
     for k in range(TIMED_STEPS):
+        t0 = time.perf_counter()
+        action = surgeon(obs)
+        driver[k] = time.perf_counter() - t0
         before = sum(sim.timings.values())
         t0 = time.perf_counter()
-        obs, _, terminated, truncated, _ = env.step(surgeon(obs))
+        obs, _, terminated, truncated, _ = env.step(action)
         wall[k] = time.perf_counter() - t0
         solver[k] = sum(sim.timings.values()) - before
         if terminated or truncated:
-            wall, solver = wall[: k + 1], solver[: k + 1]
+            wall, solver, driver = wall[: k + 1], solver[: k + 1], driver[: k + 1]
             break
     timings = dict(sim.timings)
     total = sum(timings.values())
@@ -79,6 +84,7 @@ def _bench_scene(sections: dict) -> dict:
         "solver_fraction": timings.get("project", 0.0) / total,
         "env_steps_per_s": len(wall) / float(wall.sum()),
         "env_step_ms_median": float(np.median(wall)) * 1e3,
+        "surgeon_ms_median": float(np.median(driver)) * 1e3,
         "substeps_per_env_step": sim.substeps,
         "dt_s": sim.dt,
         "timed_env_steps": len(wall),
