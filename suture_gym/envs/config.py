@@ -348,8 +348,7 @@ class SolverConfig(Solver):
         _real("solver.dt", self.dt, low=0.0, strict_low=True)
         if self.dt > MAX_DT:
             _fail("solver.dt", f"must be <= {MAX_DT} s (the environments are validated at 1 ms substeps, the paper's "
-                  f"scenes at 5/3 and 2.5 ms), "
-                  f"got {self.dt!r}")
+                  f"scenes at 5/3 and 2.5 ms), got {self.dt!r}")
         _count("solver.substeps", self.substeps, 1)
 
     def solver(self) -> Solver:
