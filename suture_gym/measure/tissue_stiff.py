@@ -488,7 +488,7 @@ def check_cantilever_period() -> CheckResult:
 
 
 #: ``(dt s, substeps)``: the largest substep a shipped config uses (``configs/envs/hand_suture_throw.yaml``, for
-#: real time on the paper's hand; ``tests/test_anatomy.py`` checks it against the configs).
+#: about real time on the paper's hand; ``tests/test_anatomy.py`` checks it against the configs).
 SCENE_SUBSTEP = (0.0025, 2)
 
 
