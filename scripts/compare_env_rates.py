@@ -30,7 +30,10 @@ from tqdm import tqdm
 
 ROOT = Path(__file__).resolve().parents[1]
 
-#: The timing run, executed with ``python -c`` in the checkout under test (it uses only Gymnasium's API).
+#: The timing run, executed with ``python -c`` in the checkout under test. It repeats the ``env_*_stiff`` workload
+#: (``suture_gym.measure.tissue_stiff``) rather than importing it: the earlier commit has no such function, and both
+#: sides must run the same code. It uses only Gymnasium's API. The new side is this working tree (``new_commit`` is
+#: its HEAD, uncommitted changes included).
 TIMING = """
 import json, sys, time
 import gymnasium as gym
