@@ -692,7 +692,7 @@ def _anchor_projection(friction, offset, penetration=1e-4, eps=3e-4):
         (diagonal(np.zeros(3)), tissue_q.copy(), np.array([[0, 1, 2]], np.int32)),
         (np.zeros(nn), eps, 1e-3, friction, 4.0),
         (kind, np.zeros(nn, np.int32), bary, normals, np.zeros(nn), np.zeros((nn, 8), np.int32), np.zeros((nn, 8)),
-         np.zeros((nn, 3)), lam, lam_t, no_patch(), no_cut()),
+         np.zeros((nn, 3)), lam, lam_t, no_patch(), no_cut(), np.zeros((nn, 3))),
         slip, pos, quat, tissue_q,
     )  # fmt: skip
     new_tip = pos + quat_to_matrix(quat) @ needle.node_pos_body[0]
@@ -715,32 +715,54 @@ def test_anchored_tip_sticks_inside_the_friction_cone_and_slides_outside():
     assert rel[2] == pytest.approx(3e-4, abs=5e-7)
 
 
-def test_a_path_row_transmits_at_most_the_tear_force():
+def _path_row_projection(offsets, tear=0.5, dt=1e-3):
+    """Project the path row of the default needle's node 5, whose path point is a pinned vertex at ``offset``
+    (3,) m from the node (tangent +z), once per offset in ``offsets`` (the vertex moved between projections, the
+    row's impulse kept). Returns ``(row_lambda[5], row_impulse[5], gap m)``."""
     needle = NeedleModel.from_shape()
     nn = needle.node_count
     pos, quat = np.zeros(3), np.array([1.0, 0.0, 0.0, 0.0])
-    node = pos + needle.node_pos_body[5]
-    tissue_q = node + np.array([[2e-3, 0.0, 0.0], [2e-3, 1e-3, 0.0], [2e-3, 0.0, 1e-3], [3e-3, 0.0, 0.0]])
     kind = np.zeros(nn, np.int8)
     kind[5] = ROW_PATH
     idx = np.zeros((nn, 8), np.int32)
     idx[5] = [0, 1, 2, 3, 0, 1, 2, 3]
     weight = np.zeros((nn, 8))
-    weight[5, :4] = [1.0, 0.0, 0.0, 0.0]  # the path point is vertex 0 (held fixed), 2 mm from the node along x
+    weight[5, :4] = [1.0, 0.0, 0.0, 0.0]  # the path point is vertex 0 (held fixed)
     tangent = np.tile([0.0, 0.0, 1.0], (nn, 1))
-    dt, tear = 1e-3, 0.5
-    lam = np.zeros(nn)
-    project_needle_rows(
-        (nn, needle.body_inv_mass, needle.body_inv_inertia, needle.node_pos_body, pos.copy(), quat.copy()),
-        (diagonal(np.zeros(4)), tissue_q.copy(), np.zeros((1, 3), np.int32)),
-        (np.zeros(nn), 3e-4, dt, 0.0, tear),
-        (kind, np.zeros(nn, np.int32), np.zeros((nn, 3)), np.zeros((nn, 3)), np.zeros(nn), idx, weight, tangent, lam,
-         np.zeros(nn), no_patch(), no_cut()),
-        np.zeros(4), pos, quat, tissue_q,
-    )  # fmt: skip
-    assert lam[5] == pytest.approx(-tear * dt * dt, rel=1e-12)
+    lam, impulse = np.zeros(nn), np.zeros((nn, 3))
+    rows = (kind, np.zeros(nn, np.int32), np.zeros((nn, 3)), np.zeros((nn, 3)), np.zeros(nn), idx, weight, tangent, lam,
+            np.zeros(nn), no_patch(), no_cut(), impulse)  # fmt: skip
+    for offset in offsets:
+        node = pos + quat_to_matrix(quat) @ needle.node_pos_body[5]
+        tissue_q = node + np.array(offset) + np.array([[0.0, 0.0, 0.0], [0.0, 1e-3, 0.0], [0.0, 0.0, 1e-3],
+                                                       [1e-3, 0.0, 0.0]])  # fmt: skip
+        project_needle_rows(
+            (nn, needle.body_inv_mass, needle.body_inv_inertia, needle.node_pos_body, pos.copy(), quat.copy()),
+            (diagonal(np.zeros(4)), tissue_q.copy(), np.zeros((1, 3), np.int32)), (np.zeros(nn), 3e-4, dt, 0.0, tear),
+            rows, np.zeros(4), pos, quat, tissue_q,
+        )  # fmt: skip
     gap = np.linalg.norm((pos + quat_to_matrix(quat) @ needle.node_pos_body[5] - tissue_q[0])[:2])
+    return lam[5], impulse[5], gap
+
+
+def test_a_path_row_transmits_at_most_the_tear_force():
+    lam, impulse, gap = _path_row_projection([[2e-3, 0.0, 0.0]])  # the path point 2 mm from the node along x
+    assert lam == pytest.approx(-0.5e-6, rel=1e-12)  # tear force 0.5 N at 1 ms
+    np.testing.assert_allclose(impulse, [0.5e-6, 0.0, 0.0], rtol=1e-12, atol=1e-20)  # pulling the node along +x
     assert gap > 1e-3  # the tissue gave way: the row could not pull node and path together
+
+
+def test_a_path_row_bounds_and_reads_its_summed_impulse_not_the_sum_of_its_steps():
+    """The row's direction turns with the node's offset from the path: pulled 10 um one way, then back, it has
+    given the needle nearly nothing in sum, and that (not the sum of its steps' sizes) is what it reads and what
+    the tear force bounds."""
+    lam, impulse, _ = _path_row_projection([[1e-5, 0.0, 0.0], [-1e-5, 0.0, 0.0]], tear=100.0)
+    one, _, _ = _path_row_projection([[1e-5, 0.0, 0.0]], tear=100.0)
+    assert lam == pytest.approx(-np.linalg.norm(impulse), rel=1e-12)
+    assert abs(lam) < 0.1 * abs(one)  # a scalar sum of the two steps would read about 2 |one|
+    # bounded by its size: pulled 2 mm one way with a tear force of 0.5 N, then back 10 um, it reads under 0.5 N
+    lam, _, _ = _path_row_projection([[2e-3, 0.0, 0.0], [-1e-5, 0.0, 0.0]])
+    assert abs(lam) < 0.5e-6
 
 
 def _pinned_bottom_block():

@@ -98,7 +98,9 @@ Projection (called by :class:`~suture_gym.sim.solver.Solver`)
   ``depenetration_speed * dt`` (:func:`contact_floors`): an old penetration is resolved over several
   substeps instead of launching the node.
 * The rows that hold a strand in the tissue (node-path and node-access) transmit at most ``tear_force``
-  each: beyond it the tissue gives way and the strand cuts through it (the damage flag is set). Without
+  each (a needle node's path row: the size of its impulse summed as a vector, since its direction turns with the
+  node's offset from the path): beyond it the tissue gives way and the strand cuts through it (the damage flag
+  is set). Without
   this bound a needle wrenched sideways drags and crushes the tissue along its path until it inverts.
 
 All rows are two-way: the tissue vertices take the reaction with their barycentric weights, so a needle pushed

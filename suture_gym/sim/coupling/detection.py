@@ -370,6 +370,7 @@ def coupling_detect(
     )  # fmt: skip
     work.row_lambda[:] = 0.0
     work.row_friction_lambda[:] = 0.0
+    work.row_impulse[:] = 0.0
     work.access_lambda[:] = 0.0
     work.tip_friction[:] = 0.0
     _tip_patch_row(state, work)

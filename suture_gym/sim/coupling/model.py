@@ -368,8 +368,10 @@ class CouplingWork:
             with friction) / ROW_WALL (contact from the inside of a rigid face). row_tri: ``(M,) int32`` triangle.
         row_tissue: ``(M, 8) int32`` tissue vertices of a path row; row_weight: ``(M, 8)`` their weights.
         row_tangent: ``(M, 3)`` path tangent of a path row.
-        row_lambda: ``(M,)`` multiplier (kg m) of each row this substep; row_friction_lambda: ``(M,)`` axial
-            friction multiplier.
+        row_lambda: ``(M,)`` multiplier (kg m) of each row this substep (a needle node's path row: minus the size
+            of its row_impulse); row_friction_lambda: ``(M,)`` axial friction multiplier.
+        row_impulse: ``(M, 3)`` the impulse (kg m) each needle node's path row gave the needle this substep,
+            summed as a vector over its projections (the tissue took the opposite).
         row_bary: ``(M, 3)`` barycentric coordinates, in the row's triangle, of the surface point a contact row
             holds its node against, and row_contact_normal: ``(M, 3)`` the unit contact normal (the smooth
             surface normal there, :func:`surface_normal`; inward for wall rows), both fixed at detection
@@ -392,8 +394,8 @@ class CouplingWork:
             ``(access_node, access_weight, access_rest, access_tri, access_bary)``, contact_rows: ``(row_kind,
             row_tri, row_bary, row_contact_normal, row_floor)`` and needle_rows: ``(row_kind,
             row_tri, row_bary, row_contact_normal, row_floor, row_tissue, row_weight, row_tangent, row_lambda,
-            row_friction_lambda, tip_patch, cut_rows)``, built once: the kernels take these groups as one argument
-            each (the same arrays, not copies).
+            row_friction_lambda, tip_patch, cut_rows, row_impulse)``, built once: the kernels take these groups as
+            one argument each (the same arrays, not copies).
         tip_patch: this substep's tip contact patch for the anchor row, ``(vertex (C,) int32, weight (C,),
             count (1,) int64, offset (3,) m, compliance (1,) m/N)`` (count 0: the anchor is a point of its
             triangle; :class:`CouplingState` ``tip_patch_*``).
@@ -421,6 +423,7 @@ class CouplingWork:
         self.row_tangent = np.zeros((m, 3))
         self.row_lambda = np.zeros(m)
         self.row_friction_lambda = np.zeros(m)
+        self.row_impulse = np.zeros((m, 3))
         self.row_contact_normal = np.zeros((m, 3))
         self.row_floor = np.zeros(m)
         self.row_bary = np.zeros((m, 3))
@@ -450,7 +453,7 @@ class CouplingWork:
             np.zeros(1),
         )  # fmt: skip
         self.cut_rows = (np.zeros(4, np.int32), np.zeros(4), np.zeros(3), np.zeros(1), np.zeros(1))
-        self.needle_rows = (*self.needle_rows, self.tip_patch, self.cut_rows)
+        self.needle_rows = (*self.needle_rows, self.tip_patch, self.cut_rows, self.row_impulse)
 
 
 def _writable_boxes(bvh: BVH) -> BVH:

@@ -233,8 +233,8 @@ def project_needle_rows(needle, tissue, coefficients, rows, tip_friction_out, ne
     with ``w_needle`` the needle's generalised inverse mass at the node along the gradient; the needle takes the
     impulse ``dlambda n`` at the node, tissue vertex ``k`` moves by ``-w_k b_k dlambda n``. The tip's anchor row
     adds Coulomb friction with coefficient ``tip_friction`` (:func:`_project_anchor`; its tangential impulse
-    and slip in ``tip_friction_out`` (4,)). A node-path multiplier is kept within ``tear_force dt^2`` in
-    magnitude (the tissue gives way beyond it). After each path row, kinetic axial friction
+    and slip in ``tip_friction_out`` (4,)). A node-path row's impulse is kept within ``tear_force dt^2`` in
+    size (the tissue gives way beyond it). After each path row, kinetic axial friction
     (:func:`_project_axial_friction`). Last the tip's cutting row, if any (:func:`project_cutting`). Updates the
     needle pose, ``tissue_q`` and the multipliers.
 
@@ -244,8 +244,8 @@ def project_needle_rows(needle, tissue, coefficients, rows, tip_friction_out, ne
         tissue: ``(inv_mass (N,) 1/kg, q_prev (N, 3) m, tri_vertices (F, 3))``.
         coefficients: ``(strand_friction (M,) N, eps m, dt s, tip_friction, tear_force N)``.
         rows: ``CouplingWork.needle_rows``: ``(row_kind, row_tri, row_bary, row_contact_normal, row_floor,
-            row_tissue, row_weight, row_tangent, row_lambda, row_friction_lambda, tip_patch, cut_rows)``
-            (:class:`CouplingWork`).
+            row_tissue, row_weight, row_tangent, row_lambda, row_friction_lambda, tip_patch, cut_rows,
+            row_impulse)`` (:class:`CouplingWork`).
         tip_friction_out: ``(4,)``. needle_pos: ``(3,)`` m, needle_quat: ``(4,)``, tissue_q: ``(N, 3)`` m.
     """
     needle_node_count, needle_inv_mass, needle_inv_inertia_body, needle_node_body = needle[:4]
@@ -314,11 +314,17 @@ def project_cutting(needle, tissue, dt, cut, needle_pos, needle_quat, tissue_q):
 
 @njit(cache=True, inline="always")
 def _project_path_row(i, needle, compliance, coefficients, rows, needle_pos, needle_quat, tissue_q):
-    """Needle node ``i``'s node-path row (eq. 1, :func:`node_path_constraint`), rigid and two-way, its
-    multiplier kept above ``-tear_force dt^2``. Arguments as :func:`project_needle_rows`."""
+    """Needle node ``i``'s node-path row (eq. 1, :func:`node_path_constraint`), rigid and two-way.
+
+    The row's direction ``n`` turns with the node's offset from the path between projections, so its impulse on
+    the needle this substep, ``row_impulse[i]`` (kg m), is summed as a vector and kept within ``tear_force dt^2``
+    in size (a step that would take it beyond is cut to reach the bound: the tissue gives way); ``row_lambda[i]``
+    is minus its size, the force the readings take. (Summed as a scalar, a row pulled one way and then back read,
+    and was bounded at, the sum of the two steps' sizes, not the impulse it gave.) Arguments as
+    :func:`project_needle_rows`."""
     _, needle_inv_mass, needle_inv_inertia_body, needle_node_body = needle[:4]
     _, _, dt, _, tear_force = coefficients
-    idx, wt, t, row_lambda = rows[5][i], rows[6][i], rows[7][i], rows[8]
+    idx, wt, t, row_lambda, total = rows[5][i], rows[6][i], rows[7][i], rows[8], rows[12][i]
     inv_inertia = world_inv_inertia(needle_quat, needle_inv_inertia_body)
     q = body_point(needle_pos, needle_quat, needle_node_body[i])
     r = q - needle_pos
@@ -327,11 +333,19 @@ def _project_path_row(i, needle, compliance, coefficients, rows, needle_pos, nee
     if ok:
         w_tissue = weighted_inv_mass(compliance, idx, wt, n)
         w = rigid_generalized_inv_mass(needle_inv_mass, inv_inertia, n, cross3(r, n)) + w_tissue
-        dlam = xpbd_delta_lambda(c, w, 0.0, row_lambda[i])
-        dlam = max(row_lambda[i] + dlam, -tear_force * dt * dt) - row_lambda[i]
-        row_lambda[i] += dlam
-        rigid_apply(needle_pos, needle_quat, needle_inv_mass, inv_inertia, n, cross3(r, n), dlam)
-        move_point(compliance, idx, wt, dlam, n, tissue_q)
+        step = xpbd_delta_lambda(c, w, 0.0, 0.0) * n
+        after = total + step
+        size = math.sqrt(after @ after)
+        cap = tear_force * dt * dt
+        if size > cap:
+            step = after * (cap / size) - total
+        amount = math.sqrt(step @ step)
+        if amount > 0.0:
+            d = step / amount
+            total += step
+            rigid_apply(needle_pos, needle_quat, needle_inv_mass, inv_inertia, d, cross3(r, d), amount)
+            move_point(compliance, idx, wt, amount, d, tissue_q)
+        row_lambda[i] = -math.sqrt(total @ total)
 
 
 @njit(cache=True, inline="always")
