@@ -100,8 +100,8 @@ Projection (called by :class:`~suture_gym.sim.solver.Solver`)
 * The rows that hold a strand in the tissue (node-path and node-access) transmit at most ``tear_force``
   each (a needle node's path row: the size of its impulse summed as a vector, since its direction turns with the
   node's offset from the path): beyond it the tissue gives way and the strand cuts through it (the damage flag
-  is set). Without
-  this bound a needle wrenched sideways drags and crushes the tissue along its path until it inverts.
+  is set). Without this bound a needle wrenched sideways drags and crushes the tissue along its path until it
+  inverts.
 
 All rows are two-way: the tissue vertices take the reaction with their barycentric weights, so a needle pushed
 against the tissue deforms it and a pulled thread closes the wound.
