@@ -324,7 +324,7 @@ def _project_path_row(i, needle, compliance, coefficients, rows, needle_pos, nee
     :func:`project_needle_rows`."""
     _, needle_inv_mass, needle_inv_inertia_body, needle_node_body = needle[:4]
     _, _, dt, _, tear_force = coefficients
-    idx, wt, t, row_lambda, total = rows[5][i], rows[6][i], rows[7][i], rows[8], rows[12][i]
+    idx, wt, t, row_lambda, total = rows[5][i], rows[6][i], rows[7][i], rows[8], rows[12]
     inv_inertia = world_inv_inertia(needle_quat, needle_inv_inertia_body)
     q = body_point(needle_pos, needle_quat, needle_node_body[i])
     r = q - needle_pos
@@ -333,19 +333,16 @@ def _project_path_row(i, needle, compliance, coefficients, rows, needle_pos, nee
     if ok:
         w_tissue = weighted_inv_mass(compliance, idx, wt, n)
         w = rigid_generalized_inv_mass(needle_inv_mass, inv_inertia, n, cross3(r, n)) + w_tissue
-        step = xpbd_delta_lambda(c, w, 0.0, 0.0) * n
-        after = total + step
-        size = math.sqrt(after @ after)
-        cap = tear_force * dt * dt
-        if size > cap:
-            step = after * (cap / size) - total
-        amount = math.sqrt(step @ step)
-        if amount > 0.0:
-            d = step / amount
-            total += step
-            rigid_apply(needle_pos, needle_quat, needle_inv_mass, inv_inertia, d, cross3(r, d), amount)
-            move_point(compliance, idx, wt, amount, d, tissue_q)
-        row_lambda[i] = -math.sqrt(total @ total)
+        dlam = xpbd_delta_lambda(c, w, 0.0, 0.0)
+        # the step dlam n, cut back onto the bound if it would take the summed impulse past it; n is reused for it
+        a0, a1, a2 = total[i, 0] + dlam * n[0], total[i, 1] + dlam * n[1], total[i, 2] + dlam * n[2]
+        size = math.sqrt(a0 * a0 + a1 * a1 + a2 * a2)
+        scale = min(1.0, tear_force * dt * dt / size) if size > 0.0 else 1.0
+        n[0], n[1], n[2] = a0 * scale - total[i, 0], a1 * scale - total[i, 1], a2 * scale - total[i, 2]
+        total[i, 0], total[i, 1], total[i, 2] = a0 * scale, a1 * scale, a2 * scale
+        rigid_apply(needle_pos, needle_quat, needle_inv_mass, inv_inertia, n, cross3(r, n), 1.0)
+        move_point(compliance, idx, wt, 1.0, n, tissue_q)
+    row_lambda[i] = -math.sqrt(total[i, 0] ** 2 + total[i, 1] ** 2 + total[i, 2] ** 2)
 
 
 @njit(cache=True, inline="always")
