@@ -37,6 +37,7 @@ from suture_gym.sim.coupling import (
     surface_normal,
     suture_contact_rows,
     suture_friction_rows,
+    tip_crossing,
     track_sigma,
     xpbd_delta_lambda,
 )
@@ -763,6 +764,37 @@ def test_a_path_row_bounds_and_reads_its_summed_impulse_not_the_sum_of_its_steps
     # bounded by its size: pulled 2 mm one way with a tear force of 0.5 N, then back 10 um, it reads under 0.5 N
     lam, _, _ = _path_row_projection([[2e-3, 0.0, 0.0], [-1e-5, 0.0, 0.0]])
     assert abs(lam) < 0.5e-6
+
+
+def test_an_exit_is_a_crossing_ahead_of_the_entry_at_its_strand_coordinate():
+    """:func:`tip_crossing` for an exit: the strand (a U through the block's top face, the tip's segment crossing
+    out, the entry ten segments up) crosses at the tip's segment, at that segment's coordinate; where the only
+    crossing is the entry's (the front of the strand outside, the rest inside), an exit must not take it: the
+    tip's closest point, at coordinate 0, instead (the whole-needle search used to return the entry)."""
+    tissue = _block_tissue()
+    model = CouplingModel.build(tissue, NeedleModel.from_shape())
+    state, work = CouplingState.empty(model), CouplingWork(model)
+    top = BLOCK[2]
+    depth = np.array([0.3, -0.3, -1.0, -2.0, -3.0, -3.0, -3.0, -3.0, -2.0, -1.0, -0.5, 0.5, 1.0])
+    strand = np.zeros((model.strand_node_count, 3))
+    strand[:, 0] = 0.01 + 1e-3 * np.arange(model.strand_node_count) * 0.5
+    strand[:, 1] = 0.01
+    strand[:, 2] = top + 1e-3
+    strand[: depth.size, 2] = top + 1e-3 * depth
+    work.strand_q[:] = strand
+    sigma = model.strand_sigma
+    q = tissue.particle_rest_q
+    entry = sigma[10] + 0.5 * (sigma[11] - sigma[10])  # the U's way out, halfway along segment 10
+    tri, _, at = tip_crossing(model, state, work, q, entry)
+    assert tri >= 0 and at == pytest.approx(0.5 * sigma[1], rel=1e-9)  # halfway along the tip's segment
+    work.strand_q[:, 2] = top - 1e-3  # now the front ten nodes outside, the rest inside: only the entry crosses
+    work.strand_q[:10, 2] = top + 0.5e-3
+    entry = sigma[9] + (sigma[10] - sigma[9]) / 3.0
+    _, _, at = tip_crossing(model, state, work, q)
+    assert at == pytest.approx(entry, rel=1e-9)  # without the bound: the entry's own crossing
+    state.strand_tri[0], state.strand_bary[0] = 7, [0.2, 0.3, 0.5]
+    tri, bary, at = tip_crossing(model, state, work, q, entry)
+    assert (tri, at) == (7, 0.0) and np.allclose(bary, [0.2, 0.3, 0.5])
 
 
 def _pinned_bottom_block():

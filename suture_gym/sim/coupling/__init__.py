@@ -41,7 +41,8 @@ Detection (once per substep, after the prediction; :func:`coupling_detect`)
    tip) if ``d > h``, one at the tip otherwise. Path nodes are tet index + barycentric coordinates located
    in the deformed mesh, so they move with the tissue.
 5. Exit: once the tip has been inside and is outside again, the point where the strand crosses the surface
-   becomes the exit access point and the path's last node; the path closes. No exit through a rigid face;
+   ahead of the path's entry (nearest the tip; the tip's closest surface point if none does) becomes the exit
+   access point, at that strand coordinate, and the path's last node; the path closes. No exit through a rigid face;
    a needle whose front left the tissue without crossing its surface loses the open path. With
    ``exit_puncture_force > 0`` the tip heading out is first held by an *exit anchor* (the anchor row from the
    inside, ROW_EXIT) until its force on it reaches that threshold; a tip that backs out through its own entry

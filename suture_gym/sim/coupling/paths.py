@@ -312,7 +312,7 @@ def tip_events(
         # the tip is through: the entry is where the strand crosses the surface (the puncture recorded the
         # tip's closest point from just outside)
         state.path_entered[open_k] = True
-        tri, bary = tip_crossing(model, state, work, tissue_q)
+        tri, bary, _ = tip_crossing(model, state, work, tissue_q)
         state.path_entry_tri[open_k] = tri
         state.path_entry_bary[open_k] = bary
         slot = state.path_first[open_k]
@@ -322,7 +322,7 @@ def tip_events(
         if params.exit_puncture_force > 0.0 and state.path_sigma_entry[open_k] < model.strand_sigma[1]:
             release_path(state, open_k)  # backed out through the entry
             return
-        tri, bary = tip_crossing(model, state, work, tissue_q)
+        tri, bary, crossed_at = tip_crossing(model, state, work, tissue_q, state.path_sigma_entry[open_k])
         if tri < 0:  # the needle's front left the tissue without crossing its surface: the bite is lost
             release_path(state, open_k)
             return
@@ -337,7 +337,7 @@ def tip_events(
         state.path_open[open_k] = False
         state.path_exit_tri[open_k] = tri
         state.path_exit_bary[open_k] = bary
-        state.path_sigma_exit[open_k] = 0.0
+        state.path_sigma_exit[open_k] = crossed_at
         tet, tet_bary = surface_point_tet(model, tissue, tri, bary)
         append_path_nodes(state, model, np.array([tet]), tet_bary[None, :])
         return
@@ -372,19 +372,24 @@ def tip_events(
 
 
 def tip_crossing(
-    model: CouplingModel, state: CouplingState, work: CouplingWork, tissue_q: np.ndarray
-) -> tuple[int, np.ndarray]:
-    """(triangle, barycentrics) where the strand at detection (``work.strand_q`` (M, 3) m) nearest the tip
-    crosses the surface (``work.surface``, refitted to ``tissue_q`` (N, 3) m), searched over the first four
-    strand segments, then over the whole needle; the tip's closest surface point when none crosses (triangle
-    -1 when the tip is beyond the broad phase)."""
+    model: CouplingModel, state: CouplingState, work: CouplingWork, tissue_q: np.ndarray, before: float = math.inf
+) -> tuple[int, np.ndarray, float]:
+    """(triangle, barycentrics, strand coordinate m) where the strand at detection (``work.strand_q`` (M, 3) m)
+    nearest the tip crosses the surface (``work.surface``, refitted to ``tissue_q`` (N, 3) m) at a coordinate below
+    ``before`` (m; an exit is searched for ahead of its path's entry), searched over the first four strand
+    segments, then over the whole needle; the tip's closest surface point, at coordinate 0, when none crosses
+    (triangle -1 when the tip is beyond the broad phase)."""
     nn = model.needle_node_count
     strand_q = work.strand_q
+    sigma = model.strand_sigma
     for k in (min(4, strand_q.shape[0] - 1), nn - 1):
         hits = segment_crossings(strand_q[:k], strand_q[1 : k + 1], work.surface, tissue_q)
-        if hits.crossing_tri.size:
-            return int(hits.crossing_tri[0]), hits.crossing_bary[0].copy()
-    return int(state.strand_tri[0]), state.strand_bary[0].copy()
+        for h in range(hits.crossing_tri.size):
+            j = int(hits.crossing_segment[h])
+            at = float(sigma[j] + hits.crossing_t[h] * (sigma[j + 1] - sigma[j]))
+            if at < before:
+                return int(hits.crossing_tri[h]), hits.crossing_bary[h].copy(), at
+    return int(state.strand_tri[0]), state.strand_bary[0].copy(), 0.0
 
 
 def release_finished_paths(model: CouplingModel, state: CouplingState, tissue_q: np.ndarray, tip: np.ndarray) -> None:
