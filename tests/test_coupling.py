@@ -32,7 +32,6 @@ from suture_gym.sim.coupling import (
     node_path_constraint,
     node_surface_constraint,
     path_spacing_count,
-    project_access_rows,
     project_needle_rows,
     project_onto_path,
     surface_normal,
@@ -796,38 +795,6 @@ def test_an_exit_is_a_crossing_ahead_of_the_entry_at_its_strand_coordinate():
     state.strand_tri[0], state.strand_bary[0] = 7, [0.2, 0.3, 0.5]
     tri, bary, at = tip_crossing(model, state, work, q, entry)
     assert (tri, at) == (7, 0.0) and np.allclose(bary, [0.2, 0.3, 0.5])
-
-
-def test_an_access_row_lets_go_once_the_strand_is_inside_its_point():
-    """The row through an access point (eq. 3, ``C <= 0``) pulls the needle's piece (nodes 4-6, curved: its chord
-    is 5.5 um shorter than its rest length) towards a point 20 um outside its bend; once the point sits on the
-    piece's chord (``C < 0``) the row's multiplier returns to 0 (the pull is let go), as a contact row's does."""
-    needle = NeedleModel.from_shape()
-    nn = needle.node_count
-    pos, quat = np.zeros(3), np.array([1.0, 0.0, 0.0, 0.0])
-    nodes = needle.node_pos_body
-    rest = float(np.linalg.norm(nodes[5] - nodes[4]) + np.linalg.norm(nodes[6] - nodes[5]))
-    access = (np.array([[4, 4, 6, 6]], np.int32), np.array([[1.0, 0.0, 1.0, 0.0]]), np.array([rest]),
-              np.zeros(1, np.int32), np.array([[1.0, 0.0, 0.0]]))  # fmt: skip
-    lam = np.zeros(1)
-    no_thread = (np.zeros(1), np.zeros(1), np.zeros((1, 3)))
-
-    def project(point, times):
-        tissue_q = point + np.array([[0.0, 0.0, 0.0], [1e-3, 0.0, 0.0], [0.0, 1e-3, 0.0]])  # a pinned triangle
-        for _ in range(times):
-            project_access_rows(
-                access, 1, (nn, needle.body_inv_mass, needle.body_inv_inertia, nodes), no_thread,
-                diagonal(np.zeros(3)), np.array([[0, 1, 2]], np.int32), 1e-6, lam, pos, quat, np.zeros((1, 3)),
-                tissue_q,
-            )  # fmt: skip
-
-    outward = nodes[5] - 0.5 * (nodes[4] + nodes[6])
-    project(nodes[5] + 20e-6 * outward / np.linalg.norm(outward), 1)  # 20 um outside the piece's bend
-    pulled = lam[0]
-    assert pulled < 0.0
-    ends = pos + nodes[[4, 6]] @ quat_to_matrix(quat).T
-    project(0.5 * (ends[0] + ends[1]), 20)  # on the chord: inside
-    assert lam[0] == 0.0
 
 
 def _pinned_bottom_block():

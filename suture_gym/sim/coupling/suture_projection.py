@@ -327,9 +327,7 @@ def _strand_point(node, needle_node_count, needle_pos, needle_quat, needle_node_
 def project_access_rows(access, access_count, needle, suture_mass, tissue, tri_vertices, force_cap, access_lambda,
                         needle_pos, needle_quat, suture_q, tissue_q):  # fmt: skip
     """One Gauss-Seidel pass over the first ``access_count`` node-access rows (eq. 3, inequality ``C <= 0``),
-    two-way, each multiplier kept in ``[-force_cap, 0]`` (kg m, the tear force times ``dt^2``): a row that
-    pulled earlier in the substep lets go again, as a contact row does, once the strand piece has come inside
-    the access point's ellipsoid (``C < 0``). (Until stop 42 a row only ever pulled harder within a substep.)
+    two-way, each multiplier kept within ``force_cap`` (kg m, the tear force times ``dt^2``) in magnitude.
 
     The strand piece's ends are ``pa = w0 x0 + w1 x1`` and ``pb = w2 x2 + w3 x3`` (strand nodes
     ``access_node``, weights ``access_weight``), so node ``k`` gets the gradient ``w_k ga`` or ``w_k gb``.
@@ -363,7 +361,7 @@ def project_access_rows(access, access_count, needle, suture_mass, tissue, tri_v
             points[e] = _strand_point(access_node[a, e], nn, needle_pos, needle_quat, needle_node_body, suture_q)
             ends[e // 2] += access_weight[a, e] * points[e]
         ok, c, ga, gb = node_access_constraint(ends[0], ends[1], b, access_rest[a])
-        if not ok or (c <= 0.0 and access_lambda[a] == 0.0):
+        if not ok or c <= 0.0:
             continue
         gs = ga + gb
         lin = np.zeros(3)
@@ -384,7 +382,7 @@ def project_access_rows(access, access_count, needle, suture_mass, tissue, tri_v
         if lin @ lin + ang @ ang > 0.0:
             w += rigid_generalized_inv_mass(needle_inv_mass, inv_inertia, lin, ang)
         dlam = xpbd_delta_lambda(c, w, 0.0, access_lambda[a])
-        dlam = min(max(access_lambda[a] + dlam, -force_cap), 0.0) - access_lambda[a]
+        dlam = max(access_lambda[a] + dlam, -force_cap) - access_lambda[a]
         access_lambda[a] += dlam
         if lin @ lin + ang @ ang > 0.0:
             rigid_apply(needle_pos, needle_quat, needle_inv_mass, inv_inertia, lin, ang, dlam)
