@@ -221,6 +221,45 @@ def test_each_solve_does_not_raise_the_incremental_potential(kind, youngs):
     assert after < before  # and does lower it from a perturbed start
 
 
+def _first_solve(youngs: float, amplitude: float):
+    """A pad's particles displaced at random by ``amplitude`` (m), one quasi-Newton step of a first sweep; returns
+    the integrator, the step's largest move and the largest move of the step that would follow it (m)."""
+    scene = suturing_pad(size=(0.006, 0.006, 0.004), cells=(3, 3, 2), material=TissueMaterial(youngs, 0.45))
+    tissue = scene.model.tissue
+    integrator = implicit_tissue(tissue, "quasi_newton", 1e-3)
+    q = scene.state.tissue.particle_q
+    free = tissue.particle_inv_mass > 0
+    q[free] += amplitude * np.random.default_rng(1).standard_normal((int(free.sum()), 3))
+    integrator.begin(q, scene.model.gravity)
+    before = q.copy()
+    integrator.solve(q, 1, converge=False)
+    integrator.potential(q)
+    following = integrator.factor.solve(integrator.grad.reshape(-1)[integrator.free_index])
+    return integrator, float(np.abs(q - before).max()), float(np.abs(following).max()), scene
+
+
+@pytest.mark.parametrize("youngs", [3.0e3, 3.0e5])
+def test_a_small_first_step_far_from_its_solution_leaves_the_solve_unconverged(youngs):
+    """The first sweep's step is below ``large_step`` in both cases; the energy's estimate of the next step flags
+    the one whose next step would move a particle by more than the convergence test's 0.1 mm (0.1 m/s over 1 ms),
+    not the one whose next step is under half of it."""
+    converged = 0.1 * 1e-3
+    integrator, size, following, _scene = _first_solve(youngs, 1.8e-4)
+    assert size < 0.9 * integrator.large_step and following > 1.5 * converged  # the case is what it claims
+    assert integrator.unconverged
+    integrator, size, following, _scene = _first_solve(youngs, 1.0e-4)
+    assert size < integrator.large_step and following < 0.7 * converged
+    assert not integrator.unconverged
+
+
+def test_the_next_step_estimate_reads_a_linear_step_as_converged():
+    """Near rest the energy along a step is the rest system's quadratic to round-off: the estimate is zero or far
+    below the step that follows (itself under a hundredth of the step)."""
+    integrator, size, following, _scene = _first_solve(3.0e5, 1e-7)
+    assert following < 1e-2 * size
+    assert not integrator.unconverged
+
+
 @pytest.mark.parametrize("kind", ["quasi_newton", "vbd"])
 def test_solves_are_deterministic(kind):
     a_int, a, _a_scene = _loaded_state(kind, 3.0e4)
