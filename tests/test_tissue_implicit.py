@@ -475,13 +475,47 @@ def test_a_later_sweep_trusts_row_moves_within_the_large_step_to_the_rest_system
                     self.rows_move = np.inf
 
             monkeypatch.setattr(tissue_implicit.ImplicitTissue, "propagate_rows", propagate)
+            monkeypatch.setattr(QuasiNewton, "rows_linear", lambda self, q: False)
         solves[0] = 0
         _, depth = _press(1.0e5, force, Solver(tissue_integrator="quasi_newton", iterations=2), seconds=0.3)
         runs[rule] = depth, solves[0]
     (depth, count), (every_depth, every_count) = runs["default"], runs["every move"]
     assert depth > 1e-4  # a real dent (0.1 mm and more)
     assert depth == pytest.approx(every_depth, abs=1e-8)
-    assert count < every_count  # 0.2 N: 404 solves against 597 in 300 substeps; 1 N: 559 against 598
+    assert count < every_count  # 0.2 N: 454 solves against 597 in 300 substeps; 1 N: 568 against 598
+
+
+@pytest.mark.parametrize("youngs", [3.0e3, 3.0e5])
+def test_rows_linear_reads_the_rest_systems_response_to_the_rows_forces_as_linear(youngs):
+    """After a solve, forces ``f`` at a few vertices (the rows') that move the tissue by ``A0^-1 f``: linear for a
+    move of 10 um, not for the same move scaled to 1.5 mm (most of a 2 mm cell), nor for a 10 um move that is not
+    the response to ``f``."""
+    scene = suturing_pad(size=(0.006, 0.006, 0.004), cells=(3, 3, 2), material=TissueMaterial(youngs, 0.45))
+    tissue = scene.model.tissue
+    integrator = implicit_tissue(tissue, "quasi_newton", 1e-3)
+    q = scene.state.tissue.particle_q
+    integrator.begin(q, scene.model.gravity)
+    integrator.solve(q, 1)
+    solved = q.copy()
+    top = np.flatnonzero(solved[:, 2] > solved[:, 2].max() - 1e-9)[:3]
+    force = np.zeros_like(q)
+    force[top] = [0.0, 0.0, -1.0]
+    response = np.zeros(q.size)
+    response[integrator.free_index] = integrator.factor.solve(force.reshape(-1)[integrator.free_index])
+    response = response.reshape(q.shape)
+
+    def moved(size: float, extra: np.ndarray | None = None) -> bool:
+        scale = size / np.abs(response).max()
+        integrator.external[...] = integrator._solved_external + scale * force
+        q[...] = solved + scale * response + (0.0 if extra is None else extra)
+        return integrator.rows_linear(q)
+
+    assert moved(1e-5)
+    assert not moved(1.5e-3)
+    noise = np.zeros_like(q)
+    free = tissue.particle_inv_mass > 0
+    noise[free] = 1e-5 * np.random.default_rng(2).standard_normal((int(free.sum()), 3))
+    assert not moved(1e-5, noise)
 
 
 def test_the_stiff_env_benchmark_changes_only_the_stiffness_for_its_soft_physics():

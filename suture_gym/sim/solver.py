@@ -532,8 +532,9 @@ class Solver:
         shortest rest edge): a smaller move is the rows' linear response through the rest system ``A0``, which
         :meth:`~suture_gym.sim.tissue_implicit.ImplicitTissue.propagate_rows` has already spread over the whole
         tissue, and a solve would only refine it (by 2 um where the rows moved it 0.2 mm on the hand; no move at
-        all leaves nothing to refine); or if the previous solve ended on a large
-        step it did not test (:attr:`~suture_gym.sim.tissue_implicit.ImplicitTissue.unconverged`): only the last
+        all leaves nothing to refine), and neither would it after a larger move that the energy reads as linear
+        (:meth:`~suture_gym.sim.tissue_implicit.ImplicitTissue.rows_linear`); or if the previous solve may have
+        ended unconverged (:attr:`~suture_gym.sim.tissue_implicit.ImplicitTissue.unconverged`): only the last
         sweep's solve, which carries the rows' load of the earlier ones, iterates until converged
         (:meth:`~suture_gym.sim.tissue_implicit.QuasiNewton.solve`). The earlier sweeps exist to let the tissue
         carry the rows' load, so the suture's direct solve, which converges on its own over its iterations,
@@ -585,7 +586,11 @@ class Solver:
         and the suture, then the rows' load spread over the tissue."""
         tissue_q = state.tissue.particle_q
         integrator = state.work.tissue_integrator(self.tissue_integrator, dt)
-        if first_sweep or integrator.unconverged or integrator.rows_move > integrator.large_step:
+        if (
+            first_sweep
+            or integrator.unconverged
+            or (integrator.rows_move > integrator.large_step and not integrator.rows_linear(tissue_q))
+        ):
             integrator.solve(tissue_q, self.tissue_iterations, converge=last_sweep)
             integrator.rows_move = 0.0
         if model.coupling is not None:
