@@ -1119,7 +1119,7 @@ class QuasiNewton(ImplicitTissue):
         d = q - self._solved_q
         model = -0.5 * float(np.vdot(f, d))
         now = self.potential(q, False)
-        before = self._solved_phi - float(np.vdot(f, self._solved_q))  # Phi at the solve under today's forces
+        before = self._solved_phi - float(np.vdot(f, self._solved_q))  # Phi at the solve under the present forces
         return next_step_estimate(now - before, model, float(np.abs(d).max()), now) <= ESTIMATED_STEP_LIMIT * self.dt
 
 
