@@ -196,16 +196,18 @@ def test_rest_system_is_the_rest_stiffness_plus_the_mass_term_for_each_modulus()
         np.testing.assert_allclose(integrator.factor.solve(rhs), np.linalg.solve(a0, rhs), rtol=1e-9, atol=1e-15)
 
 
-def _loaded_state(kind: str, youngs: float):
+def _loaded_state(kind: str, youngs: float, amplitude: float = 3e-4):
+    """A small pad's free particles displaced at random by ``amplitude`` (m) and its substep begun: the
+    integrator, the positions and the scene (which keeps the tissue, held weakly by the integrator, alive)."""
     scene = suturing_pad(size=(0.006, 0.006, 0.004), cells=(3, 3, 2), material=TissueMaterial(youngs, 0.45))
     tissue = scene.model.tissue
     integrator = implicit_tissue(tissue, kind, 1e-3)
     rng = np.random.default_rng(1)
     q = scene.state.tissue.particle_q
     free = tissue.particle_inv_mass > 0
-    q[free] += 3e-4 * rng.standard_normal((int(free.sum()), 3))
+    q[free] += amplitude * rng.standard_normal((int(free.sum()), 3))
     integrator.begin(q, scene.model.gravity)
-    return integrator, q, scene  # the scene keeps the tissue (held weakly by the integrator) alive
+    return integrator, q, scene
 
 
 @pytest.mark.parametrize("kind", ["quasi_newton", "vbd"])
@@ -224,13 +226,7 @@ def test_each_solve_does_not_raise_the_incremental_potential(kind, youngs):
 def _first_solve(youngs: float, amplitude: float):
     """A pad's particles displaced at random by ``amplitude`` (m), one quasi-Newton step of a first sweep; returns
     the integrator, the step's largest move and the largest move of the step that would follow it (m)."""
-    scene = suturing_pad(size=(0.006, 0.006, 0.004), cells=(3, 3, 2), material=TissueMaterial(youngs, 0.45))
-    tissue = scene.model.tissue
-    integrator = implicit_tissue(tissue, "quasi_newton", 1e-3)
-    q = scene.state.tissue.particle_q
-    free = tissue.particle_inv_mass > 0
-    q[free] += amplitude * np.random.default_rng(1).standard_normal((int(free.sum()), 3))
-    integrator.begin(q, scene.model.gravity)
+    integrator, q, scene = _loaded_state("quasi_newton", youngs, amplitude)
     before = q.copy()
     integrator.solve(q, 1, converge=False)
     integrator.potential(q)
@@ -490,11 +486,8 @@ def test_rows_linear_reads_the_rest_systems_response_to_the_rows_forces_as_linea
     """After a solve, forces ``f`` at a few vertices (the rows') that move the tissue by ``A0^-1 f``: linear for a
     move of 10 um, not for the same move scaled to 1.5 mm (most of a 2 mm cell), nor for a 10 um move that is not
     the response to ``f``."""
-    scene = suturing_pad(size=(0.006, 0.006, 0.004), cells=(3, 3, 2), material=TissueMaterial(youngs, 0.45))
+    integrator, q, scene = _loaded_state("quasi_newton", youngs, 0.0)
     tissue = scene.model.tissue
-    integrator = implicit_tissue(tissue, "quasi_newton", 1e-3)
-    q = scene.state.tissue.particle_q
-    integrator.begin(q, scene.model.gravity)
     integrator.solve(q, 1)
     solved = q.copy()
     top = np.flatnonzero(solved[:, 2] > solved[:, 2].max() - 1e-9)[:3]

@@ -1079,7 +1079,6 @@ class QuasiNewton(ImplicitTissue):
                 return phi
             size = _add_at(flat, free, step, -1.0)  # the step is -A0^-1 grad
             large = iteration == iterations - 1 and size > self.large_step
-            self.unconverged = large and not converge
             test_next = iteration != iterations - 1 or (large and converge)
             trial = self.potential(q, test_next)
             bound = phi + ROUNDOFF * abs(phi)
@@ -1091,6 +1090,7 @@ class QuasiNewton(ImplicitTissue):
                 halvings += 1
             if not trial <= bound:
                 _add_at(flat, free, step, 1.0)
+                self.unconverged = large and not converge
                 return phi
             if not converge and iteration == iterations - 1:
                 # the step -A0^-1 g's linear response changes Phi by -g.A0^-1 g / 2
