@@ -383,7 +383,7 @@ def _state_arrays(state) -> list:
 
     out = []
     for part in (state.tissue, state.needle, state.suture, state.coupling, state.suture_tension,
-                 state.needle_reaction, state.time):
+                 state.suture_contact, state.needle_reaction, state.time):
         values = [getattr(part, f.name) for f in fields(part)] if is_dataclass(part) else [part]
         out += [np.asarray(v) for v in values]
     return out

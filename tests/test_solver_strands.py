@@ -150,6 +150,7 @@ def _same(a: State, b: State) -> None:
             else:
                 assert value == other, f"{part}.{name}"
     assert a.suture_tension.tobytes() == b.suture_tension.tobytes()
+    assert a.suture_contact.tobytes() == b.suture_contact.tobytes()
     assert a.needle_reaction.tobytes() == b.needle_reaction.tobytes()
     assert a.time == b.time and a.diverged == b.diverged
 
@@ -329,3 +330,42 @@ def test_a_thread_node_inside_the_tissue_is_not_pushed_out_through_a_clamped_fac
     assert state.coupling.strand_sdist[rows[0]] < 0.0 and coupling.tri_rigid[state.coupling.strand_tri[rows[0]]]
     assert work.row_kind[rows].tolist() == [ROW_NONE, ROW_TRIANGLE, ROW_TRIANGLE]
     assert not coupling.tri_rigid[work.row_tri[rows[1]]] and coupling.tri_rigid[work.row_tri[rows[2]]]
+
+
+def _peel(warm_start: bool, steps: int = 300, dt: float = 2.5e-3):
+    """A 20 cm thread lying on the ground, its needle lifted at 5 cm/s: the thread peels off the floor node by node.
+    Returns the final state, the floor height and the total of the thread's direct solves."""
+    needle = NeedleModel.from_shape(gravity_compensation=True)
+    suture = RodModel.from_params(SutureParams(length=0.2, node_count=201))
+    quat = np.array([1.0, 0.0, 0.0, 0.0])
+    pos = np.zeros(3)
+    swage = quat_to_matrix(quat) @ needle.swage_pos_body
+    floor = float(swage[2]) - suture.radius
+    model = Model(needle=needle, suture=suture, obstacles=StaticObstacles.ground(floor))
+    state = State.initial(model, needle=NeedleState.at_rest(pos, quat),
+                          suture=RodState.straight(suture, swage, (1.0, 0.0, 0.0)))
+    vc, solver, control, solves = VirtualCoupling(), Solver(), Control(), 0
+    for k in range(steps):
+        target = needle.grip_pos_body + np.array([0.0, 0.0, 0.05 * k * dt])
+        control.needle_wrench = vc.wrench(needle, state.needle, target, quat, target_vel=(0.0, 0.0, 0.05))
+        if not warm_start:
+            state.suture_contact[:] = True  # every penetrating node opens its row in the first iteration
+        solver.step(model, state, control, dt)
+        solves += state.work.rod_solves
+    return model, state, floor, solves
+
+
+def test_the_contact_set_warm_start_peels_a_thread_off_the_floor_in_fewer_solves():
+    model, warm, floor, warm_solves = _peel(True)
+    _, cold, _, cold_solves = _peel(False)
+    assert not warm.diverged and not cold.diverged
+    radius = model.suture.radius
+    for state in (warm, cold):
+        z = state.suture.node_pos[:, 2]
+        assert z.min() > floor + radius - 1e-7  # the floor holds every node
+        lifted = np.count_nonzero(z > floor + radius + 1e-4)
+        assert 5 < lifted < model.suture.node_count - 5  # part lifted, part still lying: a peel front
+    # the two lift the thread alike; not to the solves' tolerance: with the floor's friction the iterations' path
+    # decides where the lying part sticks (settled after the lift: 56 um apart at the peel point)
+    assert np.abs(warm.suture.node_pos - cold.suture.node_pos).max() < 1e-3
+    assert warm_solves < 0.5 * cold_solves  # measured: 312 against 1,120

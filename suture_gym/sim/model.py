@@ -538,6 +538,10 @@ class State:
         coupling: the :class:`~suture_gym.sim.coupling.CouplingState`, or None.
         suture_tension: ``(S-1,) float64`` size of each suture segment's stretch multiplier in the last
             substep, kg m^2 (the rod solver's geometric-stiffness warm start), or None without a suture.
+        suture_contact: ``(S,) bool`` the suture nodes whose contact row pushed at the end of the last substep
+            (the rod solver's contact-set warm start: only these open a contact row in the next substep's first
+            iteration, :meth:`~suture_gym.sim.solver.Solver._project_suture`); all True in a state that has not
+            stepped; None without a suture.
         needle_reaction: ``(6,) float64`` wrench the constraints (tissue coupling, suture attachment) exerted on
             the needle in the last substep: force N, then torque about the grip point N m (the haptic
             reaction; the device feels its opposite), or None without a needle.
@@ -554,6 +558,7 @@ class State:
     suture: RodState | None = None
     coupling: CouplingState | None = None
     suture_tension: np.ndarray | None = None
+    suture_contact: np.ndarray | None = None
     needle_reaction: np.ndarray | None = None
     time: float = 0.0
     diverged: bool = False
@@ -562,8 +567,8 @@ class State:
     @classmethod
     def initial(cls, model: Model, needle: NeedleState | None = None, suture: RodState | None = None) -> State:
         """A state at rest for ``model``: tissue in its rest shape, the given needle and suture states, an
-        empty coupling state and zero warm starts and readings. A needle (suture) state is required iff the
-        model has a needle (suture)."""
+        empty coupling state, a zero tension warm start and readings, and every suture node eligible for contact.
+        A needle (suture) state is required iff the model has a needle (suture)."""
         if (model.needle is None) != (needle is None):
             raise ValueError("State.initial needs a needle state exactly when the model has a needle")
         if (model.suture is None) != (suture is None):
@@ -574,6 +579,7 @@ class State:
             suture=suture,
             coupling=None if model.coupling is None else CouplingState.empty(model.coupling),
             suture_tension=None if model.suture is None else np.zeros(model.suture.node_count - 1),
+            suture_contact=None if model.suture is None else np.ones(model.suture.node_count, dtype=np.bool_),
             needle_reaction=None if model.needle is None else np.zeros(6),
         )
 
@@ -585,6 +591,7 @@ class State:
             suture=None if self.suture is None else self.suture.copy(),
             coupling=None if self.coupling is None else self.coupling.copy(),
             suture_tension=None if self.suture_tension is None else self.suture_tension.copy(),
+            suture_contact=None if self.suture_contact is None else self.suture_contact.copy(),
             needle_reaction=None if self.needle_reaction is None else self.needle_reaction.copy(),
             time=self.time,
             diverged=self.diverged,
@@ -605,6 +612,7 @@ class State:
         self.suture = copy.suture
         self.coupling = copy.coupling
         self.suture_tension = copy.suture_tension
+        self.suture_contact = copy.suture_contact
         self.needle_reaction = copy.needle_reaction
         self.time = snapshot.time
         self.diverged = snapshot.diverged

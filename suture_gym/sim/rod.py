@@ -268,6 +268,9 @@ class RodWork:
         self.contact_active = np.zeros(n, dtype=np.bool_)
         self.contact_push = np.zeros((n, 3))
         self.contact_cap = np.zeros(n)  # > 0: row 6 is a friction row bounded by it (kg m), else a contact
+        # False: a node that penetrates without pushing yet keeps its contact row closed this iteration (the
+        # solver's contact-set warm start); the standalone rod keeps all True
+        self.contact_eligible = np.ones(n, dtype=np.bool_)
         self.att_r = np.zeros(3)
         self.att_winv = np.zeros((3, 3))
         # the kernels' argument groups (:mod:`suture_gym.sim.rod_solver`), the same arrays as above
@@ -275,6 +278,7 @@ class RodWork:
         self.frames = (self.seg_rot, self.seg_s, self.seg_winv, self.bend_b, self.seg_h, self.att_r, self.att_winv)
         self.contacts = (
             self.contact_gap, self.contact_normal, self.contact_active, self.contact_push, self.contact_cap,
+            self.contact_eligible,
         )  # fmt: skip
         self.system = (self.diag, self.lower, self.fac, self.rhs, self.y, self.z)
 

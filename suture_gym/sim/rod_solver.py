@@ -14,9 +14,10 @@ Kernels take their arrays in groups (tuples built once by :class:`~suture_gym.si
 * ``frames``: ``RodWork.frames``, ``(seg_rot, seg_s, seg_winv (N-1, 3, 3), bend_b (N-2, 3, 3), seg_h (N-1, 3),
   att_r (3,), att_winv (3, 3))``;
 * ``contacts``: ``RodWork.contacts``, ``(contact_gap (N,) m, contact_normal (N, 3), contact_active (N,),
-  contact_push (N, 3) m, contact_cap (N,) kg m)``: row 6 of node ``i`` is a one-sided contact where
-  ``contact_cap[i] == 0`` and a two-sided friction row whose accumulated multiplier stays within
-  ``+-contact_cap[i]`` where it is positive (:func:`_contact_rows`);
+  contact_push (N, 3) m, contact_cap (N,) kg m, contact_eligible (N,) bool)``: row 6 of node ``i`` is a
+  one-sided contact where ``contact_cap[i] == 0`` and a two-sided friction row whose accumulated multiplier stays
+  within ``+-contact_cap[i]`` where it is positive; a penetrating node that does not yet push opens its contact
+  row only where ``contact_eligible[i]`` (:func:`_contact_rows`);
 * ``system``: ``RodWork.system``, ``(diag, lower, fac (N, 7, 7), rhs, y, z (N, 7))``.
 
 The small helpers are compiled into their callers (``inline="always"``) and take their arrays whole with an index
@@ -494,8 +495,8 @@ def assemble_rod_system(node_pos, seg_quat, rod, needle, start, frames, contacts
 
     Rows (see :class:`~suture_gym.sim.rod.RodWork`): attachment ``C = x_0 - (p_needle + R s_swage)`` (rigid),
     stretch-shear and bend-twist per segment, and a one-sided contact ``C = gap_i`` along ``contact_normal[i]``
-    for node i, active while the node penetrates (``contact_gap[i] < 0``) or already pushes
-    (``lam[i, 6] > 0``). Unused rows carry an identity diagonal and a zero right-hand side.
+    for node i, active while the node already pushes (``lam[i, 6] > 0``) or penetrates (``contact_gap[i] < 0``)
+    and is ``contact_eligible``. Unused rows carry an identity diagonal and a zero right-hand side.
 
     Outputs (argument groups in the module docstring): Jacobian pieces ``seg_rot``, ``seg_s`` (= [d3]x),
     ``seg_winv``, ``bend_b``, frame residuals ``seg_h``, ``att_r``, ``att_winv``, ``contact_active``, and
@@ -761,13 +762,14 @@ def _bend_rows(j, seg_quat, bend_compliance, frames, diag, rhs, lam, inv_dt2, tm
 @njit(cache=True, inline="always")
 def _contact_rows(rod, has_needle, contacts, system, lam, residual, build):
     """Row 6 of block i, ``C = gap_i + n_i . (x - x_i)``, coupled to the stretch-shear (or attachment) rows
-    through ``x_i``: node i's one-sided contact (``C >= 0``), active while it penetrates or already pushes; or,
-    where ``contact_cap[i] > 0``, a friction row (``C = 0``, always active, its multiplier bounded by the cap
-    in :func:`rod_iteration_kernel`). Writes ``contact_active`` (and with ``build`` the rows); returns ``residual``
-    raised to the gaps'."""
+    through ``x_i``: node i's one-sided contact (``C >= 0``), active while it already pushes or penetrates and is
+    ``contact_eligible``; or, where ``contact_cap[i] > 0``, a friction row (``C = 0``, always active, its
+    multiplier bounded by the cap in :func:`rod_iteration_kernel`). Writes ``contact_active`` (and with ``build``
+    the rows); returns ``residual`` raised to the gaps' (an ineligible node's penetration counts too: the solve
+    does not stop while it lasts)."""
     node_inv_mass, seg_rest_length = rod[0], rod[1]
     contact_gap, contact_normal, contact_active = contacts[:3]
-    contact_cap = contacts[4]
+    contact_cap, contact_eligible = contacts[4], contacts[5]
     diag, lower, _, rhs = system[:4]
     n = node_inv_mass.shape[0]
     nseg = n - 1
@@ -776,13 +778,17 @@ def _contact_rows(rod, has_needle, contacts, system, lam, residual, build):
     for i in range(n):
         w = node_inv_mass[i]
         gap = contact_gap[i]
-        active = w > 0.0 and np.isfinite(gap) and (contact_cap[i] > 0.0 or gap < 0.0 or lam[i, 6] > 0.0)
+        scale = seg_rest_length[i - 1] if i >= 1 else seg_rest_length[0]
+        if w > 0.0 and gap < 0.0:
+            residual = max(residual, -gap / scale)
+        active = w > 0.0 and np.isfinite(gap) and (
+            contact_cap[i] > 0.0 or lam[i, 6] > 0.0 or (gap < 0.0 and contact_eligible[i])
+        )
         contact_active[i] = active
         if not active:
             if build:
                 diag[i, 6, 6] = 1.0
             continue
-        scale = seg_rest_length[i - 1] if i >= 1 else seg_rest_length[0]
         residual = max(residual, abs(gap) / scale)
         if not build:
             continue
@@ -854,7 +860,7 @@ def apply_rod_solution(rod, needle, frames, contacts, z, lam, node_pos, seg_quat
     node_inv_mass, seg_rest_length = rod[0], rod[1]
     has_needle, needle_inv_mass = needle[0], needle[1]
     _, seg_s, seg_winv, bend_b, seg_h, att_r, att_winv = frames
-    _, contact_normal, _, contact_push, contact_cap = contacts
+    contact_normal, contact_push, contact_cap = contacts[1], contacts[3], contacts[4]
     n = node_pos.shape[0]
     nseg = n - 1
     lam += z
