@@ -23,12 +23,34 @@ from suture_gym.sim.quat import (
     quat_to_matrix,
 )
 
+# The 3 x 3 products below are written in scalars: numba's ``@`` on such small arrays calls BLAS, whose per-call
+# cost was a third of the needle's path rows' projection on the hand's scene (92 -> 62 us a sweep, issue 17).
+
+
+@njit(cache=True, inline="always")
+def _product3(a, b):
+    """``a b`` (3, 3) of two (3, 3) matrices (either may be a transposed view)."""
+    out = np.empty((3, 3))
+    for i in range(3):
+        for j in range(3):
+            out[i, j] = a[i, 0] * b[0, j] + a[i, 1] * b[1, j] + a[i, 2] * b[2, j]
+    return out
+
+
+@njit(cache=True, inline="always")
+def _quadratic_form(m, v):
+    """``v^T m v`` of a (3, 3) matrix and a (3,) vector."""
+    total = 0.0
+    for i in range(3):
+        total += v[i] * (m[i, 0] * v[0] + m[i, 1] * v[1] + m[i, 2] * v[2])
+    return total
+
 
 @njit(cache=True)
 def world_inv_inertia(quat, inv_inertia_body):
     """World-frame inverse inertia ``R I_body^-1 R^T`` (3, 3) of a body with orientation ``quat`` (4,)."""
     r = quat_to_matrix(quat)
-    return r @ inv_inertia_body @ r.T
+    return _product3(_product3(r, inv_inertia_body), r.T)
 
 
 @njit(cache=True)
@@ -38,8 +60,7 @@ def point_inv_mass(inv_mass, inv_inertia_world, r, n):
     ``w = 1/m + (r x n)^T I^-1 (r x n)`` with ``r`` (3,) the point relative to the centre of mass (world, m)
     and ``I^-1`` the world inverse inertia (3, 3) (Muller et al. 2020).
     """
-    rn = cross3(r, n)
-    return inv_mass + rn @ (inv_inertia_world @ rn)
+    return inv_mass + _quadratic_form(inv_inertia_world, cross3(r, n))
 
 
 @njit(cache=True)
@@ -56,8 +77,10 @@ def point_inv_mass_matrix(inv_mass, inv_inertia_world, r):
     s[1, 2] = -r[0]
     s[2, 0] = -r[1]
     s[2, 1] = r[0]
-    k = -(s @ inv_inertia_world @ s)
+    k = _product3(_product3(s, inv_inertia_world), s)
     for i in range(3):
+        for j in range(3):
+            k[i, j] = -k[i, j]
         k[i, i] += inv_mass
     return k
 
@@ -129,7 +152,7 @@ def body_points_world(pos, quat, points_body, out):
 def rigid_generalized_inv_mass(inv_mass, inv_inertia_world, lin, ang):
     """``w = |lin|^2 / m + ang^T I^-1 ang`` (1/kg) of a rigid body for a constraint whose gradients at body
     points ``r_i`` are ``g_i``: ``lin = sum g_i``, ``ang = sum r_i x g_i`` (world frame)."""
-    return inv_mass * (lin @ lin) + ang @ (inv_inertia_world @ ang)
+    return inv_mass * (lin[0] * lin[0] + lin[1] * lin[1] + lin[2] * lin[2]) + _quadratic_form(inv_inertia_world, ang)
 
 
 @njit(cache=True)
@@ -139,7 +162,11 @@ def rigid_apply(pos, quat, inv_mass, inv_inertia_world, lin, ang, dlam):
     (3,) and ``quat`` (4,) in place."""
     for i in range(3):
         pos[i] += inv_mass * dlam * lin[i]
-    dtheta = dlam * (inv_inertia_world @ ang)
+    dtheta = np.empty(3)
+    for i in range(3):
+        dtheta[i] = dlam * (
+            inv_inertia_world[i, 0] * ang[0] + inv_inertia_world[i, 1] * ang[1] + inv_inertia_world[i, 2] * ang[2]
+        )
     quat[:] = quat_normalize(quat_mul(quat_from_rotation_vector(dtheta), quat))
 
 
@@ -147,4 +174,7 @@ def rigid_apply(pos, quat, inv_mass, inv_inertia_world, lin, ang, dlam):
 def body_point(pos, quat, point_body):
     """World position (3,) of body-frame point ``point_body`` for pose (``pos``, ``quat``)."""
     r = quat_to_matrix(quat)
-    return pos + r @ point_body
+    out = np.empty(3)
+    for i in range(3):
+        out[i] = pos[i] + r[i, 0] * point_body[0] + r[i, 1] * point_body[1] + r[i, 2] * point_body[2]
+    return out

@@ -39,13 +39,14 @@ def node_path_constraint(q, p, t):
         ``grad_p C = -n`` (so ``grad_pi C = -w_i n``). ``ok`` False when ``q`` is on the line (``C = 0``,
         nothing to correct).
     """
-    r = q - p
-    d = r - (r @ t) * t
-    c = math.sqrt(d[0] * d[0] + d[1] * d[1] + d[2] * d[2])
+    r0, r1, r2 = q[0] - p[0], q[1] - p[1], q[2] - p[2]
+    along = r0 * t[0] + r1 * t[1] + r2 * t[2]
+    d0, d1, d2 = r0 - along * t[0], r1 - along * t[1], r2 - along * t[2]
+    c = math.sqrt(d0 * d0 + d1 * d1 + d2 * d2)
     n = np.zeros(3)
     if c <= TINY_LENGTH:
         return False, 0.0, n
-    n[:] = d / c
+    n[0], n[1], n[2] = d0 / c, d1 / c, d2 / c
     return True, c, n
 
 
@@ -95,8 +96,10 @@ def node_surface_constraint(q, p1, p2, p3, bary, normal, eps):
     Returns:
         ``C`` in m; ``grad_q C = n`` and ``grad_pk C = -b_k n``.
     """
-    p = bary[0] * p1 + bary[1] * p2 + bary[2] * p3
-    return (q - p) @ normal - eps
+    c = -eps
+    for i in range(3):  # in scalars: numba's ``@`` on (3,) arrays is a BLAS call, and each term a temporary
+        c += (q[i] - (bary[0] * p1[i] + bary[1] * p2[i] + bary[2] * p3[i])) * normal[i]
+    return c
 
 
 @njit(cache=True)
