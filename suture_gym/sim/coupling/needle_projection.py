@@ -301,7 +301,7 @@ def project_cutting(needle, tissue, dt, cut, needle_pos, needle_quat, tissue_q):
     q0 = body_point(needle_pos_prev, needle_quat_prev, needle_node_body[0])
     p = tissue_point(tissue_q, idx, wt)
     p0 = tissue_point(tissue_q_prev, idx, wt)
-    advance = ((q - q0) - (p - p0)) @ t
+    advance = _relative_advance(q, q0, p, p0, t)
     w_tissue = weighted_inv_mass(compliance, idx, wt, t)
     w = rigid_generalized_inv_mass(needle_inv_mass, inv_inertia, t, cross3(r, t)) + w_tissue
     dlam = xpbd_delta_lambda(advance, w, 0.0, 0.0)
@@ -346,6 +346,15 @@ def _project_path_row(i, needle, compliance, coefficients, rows, needle_pos, nee
 
 
 @njit(cache=True, inline="always")
+def _relative_advance(q, q0, p, p0, t):
+    """``((q - q0) - (p - p0)) . t`` (m) of (3,) arrays, in scalars (no temporaries, no BLAS call)."""
+    total = 0.0
+    for i in range(3):
+        total += ((q[i] - q0[i]) - (p[i] - p0[i])) * t[i]
+    return total
+
+
+@njit(cache=True, inline="always")
 def _project_axial_friction(i, needle, tissue, coefficients, rows, needle_pos, needle_quat, tissue_q):
     """Kinetic axial friction of needle node ``i`` on its path: the relative displacement of node and path point
     along the tangent since the start of the substep is removed up to a multiplier of ``strand_friction[i] dt^2``
@@ -363,7 +372,7 @@ def _project_axial_friction(i, needle, tissue, coefficients, rows, needle_pos, n
     q0 = body_point(needle_pos_prev, needle_quat_prev, needle_node_body[i])
     p = tissue_point(tissue_q, idx, wt)
     p0 = tissue_point(tissue_q_prev, idx, wt)
-    slip = ((q - q0) - (p - p0)) @ t
+    slip = _relative_advance(q, q0, p, p0, t)
     w = rigid_generalized_inv_mass(needle_inv_mass, inv_inertia, t, cross3(r, t)) + weighted_inv_mass(
         compliance, idx, wt, t
     )
