@@ -355,6 +355,20 @@ def _peel(warm_start: bool, steps: int = 300, dt: float = 2.5e-3):
     return model, state, floor, solves
 
 
+def test_a_one_iteration_thread_solve_still_lets_every_node_open_its_contact():
+    # the contact-set warm start holds back, in the first iteration, nodes that did not push in the last substep;
+    # with a single iteration there is no later one, so a landing thread would sink through the floor
+    needle, needle_state, suture, suture_state = _free_strands()
+    floor = float(suture_state.node_pos[:, 2].min()) - 0.005
+    model = Model(needle=needle, suture=suture, obstacles=StaticObstacles.ground(floor))
+    state = State.initial(model, needle=needle_state.copy(), suture=suture_state.copy())
+    solver = Solver(rod_iterations=1)
+    for _ in range(400):
+        solver.step(model, state, Control(), DT)
+    assert not state.diverged
+    assert float(state.suture.node_pos[:, 2].min()) > floor + suture.radius - 1e-6
+
+
 def test_the_contact_set_warm_start_peels_a_thread_off_the_floor_in_fewer_solves():
     model, warm, floor, warm_solves = _peel(True)
     _, cold, _, cold_solves = _peel(False)

@@ -686,7 +686,8 @@ class Solver:
         reaction (:func:`~suture_gym.sim.coupling.apply_contact_reaction`). The warm start is loaded as the
         stretch multipliers that the rod's ``begin`` reads it from. The contact set is warm-started too: in the
         first iteration only the nodes of ``state.suture_contact`` (those that pushed at the end of the last
-        substep) open a contact row where they penetrate, the others from the second on; on the hand's scene this
+        substep) open a contact row where they penetrate, the others from the second on (with ``rod_iterations``
+        1, all of them in the one iteration); on the hand's scene this
         took the thread's iterations from 5.2 to 4.0 a substep (its tail peeling off the ground had been released
         by the active-set passes one node at a time in every substep, docs/design.md). The number of solves goes
         to ``state.work.rod_solves``; the nodes that push at the end, to ``state.suture_contact``.
@@ -727,8 +728,8 @@ class Solver:
         # the contact-set warm start: in the first iteration only the nodes that pushed at the end of the last
         # substep open a contact row where the prediction put them inside an obstacle; the others (a thread
         # peeling off the ground: its prediction falls back in) open one in a later iteration if the solve leaves
-        # them inside
-        work.contact_eligible[:] = state.suture_contact
+        # them inside. A solve of one iteration has no later one: there every node may open its row at once.
+        work.contact_eligible[:] = state.suture_contact if self.rod_iterations > 1 else True
         for it in range(self.rod_iterations):
             suture_contact_kernel(detect, rod_state.node_pos, work.contacts, coupled, friction)
             residual = rod_iteration_kernel(*iteration, it > 0)
