@@ -6,10 +6,11 @@ the earlier commit out into a temporary git worktree and times each pair of ids,
 (each with its own numba cache), alternating old and new for ``--rounds`` rounds. Both run on this checkout's
 virtual environment, so the earlier commit must import with today's dependencies.
 
-Workload (the one ``env_*_stiff`` in ``scripts/bench.py`` uses): the registered default config, 50 seeded random
-warm-up steps, then 3 timed runs of 600 seeded random steps from each of the env and action seeds 0, 1 and 2
-(resets included); an id's figure is its best run, and the pair's ``ratio`` is new over old of the best over all
-rounds.
+Workload (the one ``env_*_stiff`` in ``scripts/bench.py`` uses, its constants read from this checkout:
+``suture_gym.measure.envs.WARMUP_STEPS``, ``TIMED_STEPS``, ``suture_gym.measure.tissue_stiff.ENV_RATE_ROUNDS``,
+``ENV_RATE_SEEDS``): the registered default config, 50 seeded random warm-up steps, then 3 timed runs of 600 seeded
+random steps from each of the env and action seeds 0, 1 and 2 (resets included); an id's figure is its best run,
+and the pair's ``ratio`` is new over old of the best over all rounds.
 
 Usage::
 
@@ -33,41 +34,52 @@ ROOT = Path(__file__).resolve().parents[1]
 
 #: The timing run, executed with ``python -c`` in the checkout under test. It repeats the ``env_*_stiff`` workload
 #: (``suture_gym.measure.tissue_stiff``) rather than importing it: the earlier commit has no such function, and both
-#: sides must run the same code. It uses only Gymnasium's API. The new side is this working tree (``new_commit`` is
-#: its HEAD, uncommitted changes included).
+#: sides must run the same code; the workload's sizes come from this checkout (:func:`workload`, ``argv[2]``). It
+#: uses only Gymnasium's API. The new side is this working tree (``new_commit`` is its HEAD, uncommitted changes
+#: included).
 TIMING = """
 import json, sys, time
 import gymnasium as gym
 import suture_gym.envs
+workload = json.loads(sys.argv[2])
 env = gym.make(sys.argv[1])
 env.action_space.seed(1)
 env.reset(seed=1)
-for _ in range(50):
+for _ in range(workload["warmup"]):
     *_, terminated, truncated, _ = env.step(env.action_space.sample())
     if terminated or truncated:
         env.reset()
 rates = []
-for _ in range(3):
+for _ in range(workload["rounds"]):
     elapsed = 0.0
-    for seed in (0, 1, 2):
+    for seed in workload["seeds"]:
         env.action_space.seed(seed)
         env.reset(seed=seed)
         start = time.perf_counter()
-        for _ in range(600):
+        for _ in range(workload["steps"]):
             *_, terminated, truncated, _ = env.step(env.action_space.sample())
             if terminated or truncated:
                 env.reset()
         elapsed += time.perf_counter() - start
-    rates.append(1800 / elapsed)
+    rates.append(workload["steps"] * len(workload["seeds"]) / elapsed)
 print(json.dumps(rates))
 """
 
 
-def time_id(env_id: str, checkout: Path, cache: Path) -> list[float]:
-    """Env steps per second of ``env_id``'s three timed runs, imported from ``checkout`` (numba cache ``cache``)."""
+def workload() -> dict:
+    """The ``env_*_stiff`` benchmark's workload (its constants in this checkout), handed to :data:`TIMING`."""
+    from suture_gym.measure.envs import TIMED_STEPS, WARMUP_STEPS
+    from suture_gym.measure.tissue_stiff import ENV_RATE_ROUNDS, ENV_RATE_SEEDS
+
+    return {"warmup": WARMUP_STEPS, "rounds": ENV_RATE_ROUNDS, "seeds": list(ENV_RATE_SEEDS), "steps": TIMED_STEPS}
+
+
+def time_id(env_id: str, checkout: Path, cache: Path, work: dict) -> list[float]:
+    """Env steps per second of ``env_id``'s timed runs of ``work`` (:func:`workload`), imported from ``checkout``
+    (numba cache ``cache``)."""
     env = {**os.environ, "PYTHONPATH": str(checkout), "NUMBA_CACHE_DIR": str(cache), "NUMBA_NUM_THREADS": "1"}
-    done = subprocess.run([sys.executable, "-c", TIMING, env_id], cwd=checkout, env=env, capture_output=True,
-                          text=True)  # fmt: skip
+    done = subprocess.run([sys.executable, "-c", TIMING, env_id, json.dumps(work)], cwd=checkout, env=env,
+                          capture_output=True, text=True)  # fmt: skip
     if done.returncode != 0:
         raise RuntimeError(f"timing {env_id} in {checkout} failed:\n{done.stderr[-2000:]}")
     return json.loads(done.stdout.strip().splitlines()[-1])
@@ -98,13 +110,14 @@ def main(argv: list[str] | None = None) -> int:
         subprocess.run(["git", "worktree", "add", "--detach", str(worktree), sha], cwd=ROOT, check=True,
                        capture_output=True)  # fmt: skip
         try:
+            work = workload()
             rates = {pair: {"old": [], "new": []} for pair in pairs}
             with tqdm(total=2 * len(pairs) * args.rounds, desc="timing", disable=args.no_progress) as bar:
                 for _ in range(args.rounds):
                     for old, new in pairs:
-                        rates[old, new]["old"] += time_id(old, worktree, Path(tmp) / "cache_old")
+                        rates[old, new]["old"] += time_id(old, worktree, Path(tmp) / "cache_old", work)
                         bar.update()
-                        rates[old, new]["new"] += time_id(new, ROOT, Path(tmp) / "cache_new")
+                        rates[old, new]["new"] += time_id(new, ROOT, Path(tmp) / "cache_new", work)
                         bar.update()
         finally:
             subprocess.run(["git", "worktree", "remove", "--force", str(worktree)], cwd=ROOT, capture_output=True)
