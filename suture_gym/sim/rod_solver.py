@@ -779,13 +779,13 @@ def _contact_rows(rod, has_needle, contacts, system, lam, residual, build):
         w = node_inv_mass[i]
         gap = contact_gap[i]
         scale = seg_rest_length[i - 1] if i >= 1 else seg_rest_length[0]
-        if w > 0.0 and gap < 0.0:
-            residual = max(residual, -gap / scale)
         active = w > 0.0 and np.isfinite(gap) and (
             contact_cap[i] > 0.0 or lam[i, 6] > 0.0 or (gap < 0.0 and contact_eligible[i])
         )
         contact_active[i] = active
         if not active:
+            if w > 0.0 and gap < 0.0:  # a penetration held back by the contact-set warm start
+                residual = max(residual, -gap / scale)
             if build:
                 diag[i, 6, 6] = 1.0
             continue
