@@ -52,7 +52,7 @@ bench: setup
 	$(PY) scripts/bench.py
 
 lint: setup
-	$(BIN)/ruff check suture_gym scripts tests agents
+	$(BIN)/ruff check suture_gym scripts tests
 
 clean:
 	rm -rf $(VENV) .numba_cache .pytest_cache .ruff_cache out

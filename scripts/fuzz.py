@@ -46,7 +46,7 @@ import traceback
 from dataclasses import dataclass
 from pathlib import Path
 
-from _common import ROOT, configure
+from _common import configure
 
 configure(threads=1)
 
@@ -55,6 +55,7 @@ import numpy as np  # noqa: E402
 import yaml  # noqa: E402
 from tqdm import tqdm  # noqa: E402
 
+from suture_gym.configs import ENV_DIR  # noqa: E402
 from suture_gym.envs import ENV_IDS, GOAL_ENV_IDS  # noqa: E402
 from suture_gym.envs.config import ACTION_MODES  # noqa: E402
 
@@ -68,7 +69,7 @@ EVENT_SAMPLES = 1000
 FINITE_INFO = ("tip_force", "haptic_wrench", "wound_gap", "cost")
 
 
-CONFIG_DIR = ROOT / "configs" / "envs"
+CONFIG_DIR = ENV_DIR
 
 
 def cases(config_dir: Path = CONFIG_DIR) -> list[dict]:

@@ -2,14 +2,14 @@
 
 Steps:
 
-1. train DAgger (``configs/agents/dagger.yml``, :mod:`agents.dagger`) on ``SutureGym/NeedleInsert-v2``
+1. train DAgger (``configs/agents/dagger.yml``, :mod:`suture_gym.baselines.dagger`) on ``SutureGym/NeedleInsert-v2``
    (randomised by default) with a progress bar: the scripted surgeon's demonstrations, then iterations in which
    the learner acts alone and the surgeon labels every state it visits (run directory
    ``<out>/dagger_NeedleInsert_s<seed>/``); ``--algo ppo`` trains PPO warm-started by behaviour cloning
    (``configs/agents/ppo.yml``) instead;
 2. evaluate the trained model on ``--episodes`` seeded episodes of the same env config, and on the same seeds
    the committed models of the same algorithm (``models/NeedleInsert/seed*/``, the README's table), the
-   scripted expert and random actions (``agents.evaluation.evaluate``) -> ``<run>/evaluation.json``; the
+   scripted expert and random actions (``suture_gym.baselines.evaluation.evaluate``) -> ``<run>/evaluation.json``; the
    committed models' own 100-episode figures (their ``evaluation.json``) are printed beside;
 3. the learning curve -> ``<run>/learning_curve.png`` (written by the training);
 4. a video of one episode of the trained policy -> ``<run>/policy.mp4``.
@@ -38,7 +38,7 @@ configure(threads=1)
 import gymnasium as gym  # noqa: E402
 
 import suture_gym  # noqa: E402, F401  (registers the ids)
-from agents.evaluation import (  # noqa: E402
+from suture_gym.baselines.evaluation import (  # noqa: E402
     SCRIPTED,
     evaluate,
     make_policy,
@@ -46,7 +46,7 @@ from agents.evaluation import (  # noqa: E402
     run_config,
     trained_env_kwargs,
 )
-from agents.training import train  # noqa: E402
+from suture_gym.baselines.training import train  # noqa: E402
 from suture_gym.render import write_video  # noqa: E402
 
 ENV_ID = "SutureGym/NeedleInsert-v2"

@@ -114,7 +114,7 @@ def _stitch(name: str, mesh: TetMesh) -> dict:
     import gymnasium as gym
 
     import suture_gym.envs  # noqa: F401
-    from agents.expert import ExpertPolicy
+    from suture_gym.baselines.expert import ExpertPolicy
 
     with tempfile.TemporaryDirectory() as tmp:
         path = str(Path(tmp) / f"{name}.vtu")

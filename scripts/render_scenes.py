@@ -24,12 +24,13 @@ configure(threads=1)
 import gymnasium as gym  # noqa: E402
 
 import suture_gym.envs  # noqa: E402, F401
-from agents.expert import ExpertPolicy  # noqa: E402
+from suture_gym.baselines.expert import ExpertPolicy  # noqa: E402
+from suture_gym.configs import ENV_DIR  # noqa: E402
 from suture_gym.envs.config import read_yaml  # noqa: E402
 from suture_gym.render import save_png  # noqa: E402
 from suture_gym.sim.anatomy import hand_surface  # noqa: E402
 
-CONFIGS = ROOT / "configs" / "envs"
+CONFIGS = ENV_DIR
 SCENES = {
     "abdominal_wall": ("SutureGym/WoundClosure-v2", CONFIGS / "abdominal_wall_wound_closure.yaml"),
     "hand": ("SutureGym/SutureThrow-v2", CONFIGS / "hand_suture_throw.yaml"),

@@ -1,4 +1,4 @@
-"""Tune an agent's hyperparameters with Optuna, rl-baselines3-zoo style (agents/tuning.py).
+"""Tune an agent's hyperparameters with Optuna, rl-baselines3-zoo style (suture_gym/baselines/tuning.py).
 
 Usage::
 
@@ -58,8 +58,8 @@ def main(argv: list[str] | None = None) -> int:
         if getattr(args, name) < 1:
             parser.error(f"--{name.replace('_', '-')} must be >= 1, got {getattr(args, name)}")
 
-    from agents.hyperparams import load_hyperparams, resolve
-    from agents.tuning import SAMPLERS, objective, open_study, study_summary
+    from suture_gym.baselines.hyperparams import load_hyperparams, resolve
+    from suture_gym.baselines.tuning import SAMPLERS, objective, open_study, study_summary
 
     if args.algo not in SAMPLERS:
         parser.error(f"--algo {args.algo!r} has no search space; known: {sorted(SAMPLERS)}")

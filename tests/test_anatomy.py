@@ -1,10 +1,10 @@
 """The anatomical scenes at coarse resolution: a curved layered abdominal wall and a hand, each with its wound."""
 
-from pathlib import Path
 
 import numpy as np
 import pytest
 
+from suture_gym.configs import ENV_DIR
 from suture_gym.envs.config import load_config, read_yaml
 from suture_gym.measure.anatomy import SCENES
 from suture_gym.measure.tissue_stiff import SCENE_SUBSTEP
@@ -12,7 +12,7 @@ from suture_gym.sim.anatomy import ABDOMINAL_LAYERS, abdominal_wall, curved_slab
 from suture_gym.sim.mesh import signed_volumes
 from suture_gym.sim.scenes import wound_gap
 
-CONFIGS = Path(__file__).parents[1] / "configs" / "envs"
+CONFIGS = ENV_DIR
 
 
 def test_curved_slab_wraps_the_box_onto_concentric_cylinders():

@@ -13,11 +13,11 @@ pytest.importorskip("stable_baselines3")
 pytest.importorskip("sb3_contrib")
 
 import suture_gym  # noqa: E402, F401  (registers the ids)
-from agents.evaluation import evaluate  # noqa: E402
-from agents.expert import ExpertPolicy, record  # noqa: E402
-from agents.hyperparams import load_hyperparams  # noqa: E402
-from agents.training import train  # noqa: E402
-from suture_gym.tasks.surgeon import WORKSPACE_INSET  # noqa: E402
+from suture_gym.baselines.evaluation import evaluate  # noqa: E402
+from suture_gym.baselines.expert import ExpertPolicy, record  # noqa: E402
+from suture_gym.baselines.hyperparams import load_hyperparams  # noqa: E402
+from suture_gym.baselines.surgeon import WORKSPACE_INSET  # noqa: E402
+from suture_gym.baselines.training import train  # noqa: E402
 
 #: (algo, env id, env steps): the shipped configs with the budget, batch, warm-up and time limit shortened
 #: (HER samples only finished episodes, so episodes end before learning starts).
@@ -178,16 +178,10 @@ def test_demonstrations_round_trip(tmp_path):
     assert replayed == pytest.approx(float(data["rewards"][: lengths[0]].sum()), rel=0, abs=1e-12)
 
 
-def test_train_script_from_scratch_leaves_out_the_warm_start(tmp_path, monkeypatch, capsys):
-    import importlib
-    from pathlib import Path
-
+def test_train_command_from_scratch_leaves_out_the_warm_start(tmp_path, monkeypatch, capsys):
     import yaml
 
-    for var in ("NUMBA_NUM_THREADS", "OMP_NUM_THREADS", "OPENBLAS_NUM_THREADS", "MKL_NUM_THREADS"):
-        monkeypatch.setenv(var, "1")  # the script's configure() sets them; restored after the test
-    monkeypatch.syspath_prepend(str(Path(__file__).resolve().parents[1] / "scripts"))
-    script = importlib.import_module("train")
+    from suture_gym.cli import train as script
 
     def shortened(algo, env_id):
         hyperparams = load_hyperparams(algo, env_id)

@@ -1,5 +1,5 @@
-"""DAgger (agents/dagger.py) and its oracle, the feedback expert (agents/expert.py), on NeedleInsert (and
-WoundClosure for the transit between stitches)."""
+"""DAgger (suture_gym/baselines/dagger.py) and its oracle, the feedback expert (suture_gym/baselines/expert.py), on
+NeedleInsert (and WoundClosure for the transit between stitches)."""
 
 import json
 
@@ -10,12 +10,13 @@ import pytest
 pytest.importorskip("stable_baselines3")
 
 import suture_gym  # noqa: E402,F401
-from agents.dagger import DAGGER_KEYS, dagger_settings  # noqa: E402
-from agents.evaluation import evaluate  # noqa: E402
-from agents.expert import ExpertPolicy, FeedbackExpert  # noqa: E402
-from agents.hyperparams import load_hyperparams, resolve  # noqa: E402
-from agents.training import train  # noqa: E402
-from suture_gym.tasks.surgeon import LIFT, TRANSIT_SPEED, WAYPOINT_TOLERANCE, start_angle  # noqa: E402
+from suture_gym.baselines.dagger import DAGGER_KEYS, dagger_settings  # noqa: E402
+from suture_gym.baselines.evaluation import evaluate  # noqa: E402
+from suture_gym.baselines.expert import ExpertPolicy, FeedbackExpert  # noqa: E402
+from suture_gym.baselines.hyperparams import load_hyperparams, resolve  # noqa: E402
+from suture_gym.baselines.surgeon import LIFT, TRANSIT_SPEED, WAYPOINT_TOLERANCE
+from suture_gym.baselines.training import train  # noqa: E402
+from suture_gym.tasks.surgeon import start_angle  # noqa: E402
 
 NOMINAL = {"config": "configs/envs/needle_insert_deterministic.yaml"}
 

@@ -10,8 +10,8 @@ import pytest
 pytest.importorskip("minari")
 pytest.importorskip("stable_baselines3")
 
-from agents.expert import record, record_minari  # noqa: E402
-from agents.imitation import behaviour_clone, load_demos, load_minari_demos  # noqa: E402
+from suture_gym.baselines.expert import record, record_minari  # noqa: E402
+from suture_gym.baselines.imitation import behaviour_clone, load_demos, load_minari_demos  # noqa: E402
 
 ENV = "SutureGym/NeedleInsert-v2"
 DATASET = "suture_gym/NeedleInsert-v2/expert-v0"
@@ -72,7 +72,7 @@ def test_behaviour_cloning_fits_the_dataset(root):
 
 
 def test_training_clones_a_dataset_by_id(root, tmp_path, monkeypatch):
-    from agents.training import train
+    from suture_gym.baselines.training import train
 
     monkeypatch.setenv("MINARI_DATASETS_PATH", str(root))
     hyperparams = {"policy": "MlpPolicy", "n_timesteps": 16, "n_steps": 16, "batch_size": 16, "n_epochs": 1,

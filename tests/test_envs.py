@@ -13,10 +13,11 @@ import numpy as np
 import pytest
 
 import suture_gym.envs  # noqa: F401  (registers the ids)
+from suture_gym.configs import ENV_DIR
 from suture_gym.envs import ENV_IDS, GOAL_ENV_IDS, SutureEnv, SutureGoalEnv
 
 ALL_IDS = list(ENV_IDS) + list(GOAL_ENV_IDS)
-CONFIGS = Path(__file__).resolve().parents[1] / "configs" / "envs"
+CONFIGS = ENV_DIR
 INFO_KEYS = ("is_success", "punctured", "tip_force", "haptic_wrench", "wound_gap", "diverged", "cost")
 _ENVS: dict = {}
 
@@ -155,7 +156,7 @@ def test_same_seed_same_actions_bit_identical(env_id):
 def _expert_record(env, seed: int, steps: int, options: dict | None = None) -> list:
     """The scripted expert's episode from ``env.reset(seed=seed, options=options)`` for at most ``steps`` steps:
     the raw bytes of every observation and each step's reward, for bit-for-bit comparison."""
-    from agents.expert import ExpertPolicy
+    from suture_gym.baselines.expert import ExpertPolicy
 
     expert = ExpertPolicy(env)
     obs, _ = env.reset(seed=seed, options=options)
@@ -173,9 +174,9 @@ def test_an_episode_does_not_depend_on_the_episodes_before_it():
     """The same seed and actions replay the same episode bit for bit in a fresh env and in one that has run
     another episode first (the nominal config keeps the tissue integrator, and its cached columns of the rest
     system's inverse, across resets)."""
-    from agents.expert import ExpertPolicy
+    from suture_gym.baselines.expert import ExpertPolicy
 
-    config = Path(__file__).resolve().parents[1] / "configs" / "envs" / "needle_insert_deterministic.yaml"
+    config = ENV_DIR / "needle_insert_deterministic.yaml"
     fresh = gym.make("SutureGym/NeedleInsert-v2", config=str(config)).unwrapped
     used = gym.make("SutureGym/NeedleInsert-v2", config=str(config)).unwrapped
     expert, noise = ExpertPolicy(used), np.random.default_rng(3)

@@ -8,6 +8,8 @@ from pathlib import Path
 import pytest
 from conftest import import_script
 
+from suture_gym.configs import ENV_DIR
+
 SCRIPTS = Path(__file__).resolve().parents[1] / "scripts"
 
 
@@ -20,7 +22,7 @@ def test_a_short_fuzz_run_finds_nothing(fuzz, capsys):
     status = fuzz.main(["--steps", "360", "--json", "--seed", "0", "--no-progress"])
     summary = json.loads(capsys.readouterr().out)
     assert status == 0, summary["events"]
-    shipped = list((SCRIPTS.parent / "configs" / "envs").glob("*.yaml"))
+    shipped = list(ENV_DIR.glob("*.yaml"))
     # every shipped config is played by its task's flat and goal-conditioned id, in both action modes
     assert summary["steps"] == 360 and summary["cases"] == len(summary["per_case"]) == 2 * 2 * len(shipped)
     assert {c["case"].split()[1] for c in summary["per_case"]} == {"wrench", "pose_delta"}

@@ -1,13 +1,13 @@
-"""Behaviour-cloning warm start (agents/imitation.py) on Pendulum-v1: discounted returns by hand, and a cloned
-policy that reproduces a known linear controller it was shown."""
+"""Behaviour-cloning warm start (suture_gym/baselines/imitation.py) on Pendulum-v1: discounted returns by hand, and a
+cloned policy that reproduces a known linear controller it was shown."""
 
 import numpy as np
 import pytest
 
 pytest.importorskip("stable_baselines3")
 
-from agents.hyperparams import resolve  # noqa: E402
-from agents.imitation import behaviour_clone, discounted_returns  # noqa: E402
+from suture_gym.baselines.hyperparams import resolve  # noqa: E402
+from suture_gym.baselines.imitation import behaviour_clone, discounted_returns  # noqa: E402
 
 
 def test_discounted_returns_restart_at_each_episode():

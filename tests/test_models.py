@@ -11,7 +11,7 @@ import pytest
 pytest.importorskip("stable_baselines3")
 
 import suture_gym  # noqa: E402,F401
-from agents.evaluation import make_policy, model_vecnormalize, run_config, trained_env_kwargs  # noqa: E402
+from suture_gym.baselines.evaluation import make_policy, model_vecnormalize, run_config, trained_env_kwargs  # noqa: E402
 
 MODELS = sorted((Path(__file__).resolve().parents[1] / "models").glob("*/seed*/final_model.zip"))
 

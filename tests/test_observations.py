@@ -296,8 +296,8 @@ def test_sb3_multi_input_policy_and_vecnormalize_leave_the_images_alone():
     pytest.importorskip("stable_baselines3")
     from stable_baselines3 import PPO
 
-    from agents.imitation import behaviour_clone
-    from agents.training import make_train_envs
+    from suture_gym.baselines.imitation import behaviour_clone
+    from suture_gym.baselines.training import make_train_envs
     from suture_gym.envs.sb3 import make_sb3_vec_env
 
     config = {"observation": {"mode": "rgbd", "camera": {"width": 36, "height": 36}}}

@@ -4,7 +4,6 @@ refused naming their config key; the shipped configs pass untouched."""
 
 import time
 import warnings
-from pathlib import Path
 
 import pytest
 import trimesh
@@ -12,12 +11,13 @@ import yaml
 
 import suture_gym.envs  # noqa: F401  (registers the ids)
 import suture_gym.sim.mesh as mesh_module
+from suture_gym.configs import ENV_DIR
 from suture_gym.envs import SutureEnv, load_config
 from suture_gym.sim.mesh import box_tet_grid
 from suture_gym.sim.mesh_io import tetrahedralize_surface
 from suture_gym.sim.model import TissueMaterial
 
-CONFIGS = Path(__file__).resolve().parents[1] / "configs" / "envs"
+CONFIGS = ENV_DIR
 
 
 def test_a_fine_cell_size_is_refused_before_building_with_the_estimate_and_the_cap():

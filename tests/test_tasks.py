@@ -4,12 +4,12 @@ potential shaping, costs, goals), configs, domain randomisation and the observat
 import math
 from dataclasses import fields as dataclass_fields
 from dataclasses import replace
-from pathlib import Path
 
 import numpy as np
 import pytest
 import yaml
 
+from suture_gym.configs import AGENT_DIR, ENV_DIR
 from suture_gym.envs import ENV_IDS, TASK_CLASSES
 from suture_gym.envs.config import (
     EnvConfig,
@@ -31,7 +31,7 @@ from suture_gym.tasks import NeedleInsert, Observables, PlannedArc, SutureThrow,
 from suture_gym.tasks.geometry import plan_stitches
 
 R = 0.026 / math.pi  # m, default needle curvature radius
-CONFIGS = Path(__file__).resolve().parents[1] / "configs" / "envs"
+CONFIGS = ENV_DIR
 RNG = np.random.default_rng(3)
 #: The package's own tasks (test modules may register more).
 TASKS = ("needle_insert", "suture_throw", "wound_closure")
@@ -298,9 +298,8 @@ def test_a_miss_without_end_on_miss_or_in_wound_closure_does_not_end_it():
 def test_ending_an_episode_early_costs_more_than_any_stay():
     """The per-step path penalty made leaving the workspace the best move of a policy that is off the plan: the
     failure term must outweigh the discounted path penalty of staying for ever, at the worst deviation."""
-    agents = Path(__file__).resolve().parents[1] / "configs" / "agents"
     checked = 0
-    for f in sorted(agents.glob("*.yml")):
+    for f in sorted(AGENT_DIR.glob("*.yml")):
         for env_id, entry in yaml.safe_load(f.read_text()).items():
             task = ENV_IDS.get(env_id)
             if task is not None:

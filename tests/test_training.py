@@ -12,9 +12,9 @@ import yaml
 
 pytest.importorskip("stable_baselines3")
 
-from agents.evaluation import episode_end, evaluate  # noqa: E402
-from agents.hyperparams import load_hyperparams, resolve  # noqa: E402
-from agents.training import run_name, train  # noqa: E402
+from suture_gym.baselines.evaluation import episode_end, evaluate  # noqa: E402
+from suture_gym.baselines.hyperparams import load_hyperparams, resolve  # noqa: E402
+from suture_gym.baselines.training import run_name, train  # noqa: E402
 
 TINY = {"policy": "MlpPolicy", "n_timesteps": 256, "n_envs": 2, "n_steps": 32, "batch_size": 32,
         "learning_rate": "lin_1e-3", "policy_kwargs": {"net_arch": [16], "activation_fn": "tanh"},
@@ -52,12 +52,13 @@ def test_resolve_names_bad_values(change, message):
         resolve({**TINY, **change})
 
 
-def test_relative_env_config_is_taken_from_the_repository():
-    from agents.hyperparams import ROOT
+@pytest.mark.parametrize("name", ["needle_insert", "needle_insert.yaml", "configs/envs/needle_insert.yaml"])
+def test_env_config_by_name_is_the_shipped_file(name, tmp_path, monkeypatch):
+    from suture_gym.configs import ENV_DIR
 
-    script, _ = resolve({**TINY, "env_kwargs": {"config": "configs/envs/needle_insert.yaml"},
-                         "behaviour_cloning": {"epochs": 5}})
-    assert script["env_kwargs"]["config"] == str(ROOT / "configs" / "envs" / "needle_insert.yaml")
+    monkeypatch.chdir(tmp_path)
+    script, _ = resolve({**TINY, "env_kwargs": {"config": name}, "behaviour_cloning": {"epochs": 5}})
+    assert script["env_kwargs"]["config"] == str(ENV_DIR / "needle_insert.yaml")
     assert script["behaviour_cloning"] == {"expert_episodes": 40, "epochs": 5, "batch_size": 256,
                                            "learning_rate": 1e-3, "dataset": None}
 
@@ -199,7 +200,7 @@ def test_episode_end_names_why_an_episode_ended(info, terminated, truncated, end
 
 def test_learning_curves_of_one_run_and_of_several(tmp_path):
     pytest.importorskip("matplotlib")
-    from agents.plotting import main, plot_learning_curve
+    from suture_gym.baselines.plotting import main, plot_learning_curve
 
     files = []
     for k in range(2):
@@ -220,7 +221,7 @@ def test_learning_curves_from_dagger_summaries(tmp_path):
     pytest.importorskip("matplotlib")
     import json
 
-    from agents.plotting import load_curve, plot_learning_curve
+    from suture_gym.baselines.plotting import load_curve, plot_learning_curve
 
     iterations = [{"iteration": 0, "beta": 1.0, "steps": 100, "checkpoint_steps": 100, "success_rate": 1.0,
                    "mean_return": 9.0},

@@ -14,8 +14,7 @@ import pytest
 
 from suture_gym.envs import ENV_IDS, GOAL_ENV_IDS
 from suture_gym.envs.config import load_config
-from suture_gym.viewer import require_viser
-from suture_gym.viewer.scene import EpisodeStatus
+from suture_gym.render.live import EpisodeStatus, require_viser
 
 NEEDLE = "SutureGym/NeedleInsert-v2"
 needs_viser = pytest.mark.skipif(importlib.util.find_spec("viser") is None,
@@ -127,7 +126,7 @@ def test_a_changed_layout_replaces_the_nodes_it_changes(recwarn):
     """A frame whose markers, strand or triangles differ in number replaces those nodes (a new episode layout);
     hidden layers stay hidden."""
     from suture_gym.render import RenderFrame
-    from suture_gym.viewer.scene import LiveView
+    from suture_gym.render.live import LiveView
 
     view = LiveView(port=0)
     try:
@@ -263,7 +262,7 @@ def test_teleoperated_episode_is_recorded_and_cloned(tmp_path, action_mode):
     """Scripted key presses through the viewer's input path move the needle, are recorded as a Minari dataset
     and load back through the behaviour-cloning loader."""
     pytest.importorskip("minari", reason="recording needs Minari: pip install 'suture_gym[data]'")
-    from agents.imitation import load_minari_demos
+    from suture_gym.baselines.imitation import load_minari_demos
 
     app = _app(action_mode=action_mode, seed=3, config={"randomization": {"enabled": False}})  # the nominal start
     try:

@@ -32,7 +32,7 @@ RuntimeError too.
 
 Rendering: ``render_mode="rgb_array"``: :meth:`~SutureEnv.render` returns an image from the offline renderer
 (:mod:`suture_gym.render`). ``render_mode="human"``: a live 3D view in the browser
-(:class:`suture_gym.viewer.scene.LiveView`, viser, the ``viewer`` extra), served on ``render.viewer_host`` and
+(:class:`suture_gym.render.live.LiveView`, viser, the ``viewer`` extra), served on ``render.viewer_host`` and
 ``render.viewer_port`` from the first ``reset`` on and updated by every ``reset`` and ``step`` (at most
 ``render.viewer_fps`` frames per second; the env never waits for a browser); ``close`` stops it.
 
@@ -128,7 +128,7 @@ class SutureEnv(gym.Env):
         if render_mode is not None and render_mode not in self.metadata["render_modes"]:
             raise ValueError(f"render_mode must be None or one of {self.metadata['render_modes']}, got {render_mode!r}")
         if render_mode == "human":
-            from suture_gym.viewer import require_viser
+            from suture_gym.render.live import require_viser
 
             require_viser()  # fail here, naming the extra to install, rather than at the first reset
         self.config: EnvConfig = cfg
@@ -288,7 +288,7 @@ class SutureEnv(gym.Env):
 
     def _show_live(self, force: bool) -> None:
         """Push the episode to the live view (``render_mode="human"``), starting its server on first use."""
-        from suture_gym.viewer.scene import EpisodeStatus, LiveView
+        from suture_gym.render.live import EpisodeStatus, LiveView
 
         r = self.config.render
         if self._live is None:

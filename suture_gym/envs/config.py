@@ -29,15 +29,15 @@ from dataclasses import dataclass, field, fields, is_dataclass, replace
 from pathlib import Path
 from typing import Any, ClassVar
 
+from suture_gym.configs import env_config_path
 from suture_gym.envs.registry import task_class
-from suture_gym.sim.anatomy import HAND_VOLUME
+from suture_gym.sim.anatomy import ANATOMY_KINDS, HAND_VOLUME
 from suture_gym.sim.coupling import CouplingParams
 from suture_gym.sim.mesh import BYTES_PER_TET_IMPLICIT, BYTES_PER_TET_XPBD, check_tet_budget
 from suture_gym.sim.model import VALIDATED_YOUNGS_MODULUS, TissueMaterial
 from suture_gym.sim.needle import NeedleShape, VirtualCoupling
 from suture_gym.sim.rod import SutureParams
 from suture_gym.sim.solver import Solver
-from suture_gym.tasks.base import ANATOMY_KINDS
 
 #: Action modes: a wrench on the needle holder, or a pose change of the holder through the virtual coupling.
 ACTION_MODES: tuple[str, ...] = ("wrench", "pose_delta")
@@ -620,7 +620,7 @@ class ObservationConfig(_Section):
 @dataclass(frozen=True)
 class RenderConfig(_Section):
     """``render_mode="rgb_array"`` image size and supersampling; ``render_mode="human"`` live view's server and
-    frame rate (:class:`suture_gym.viewer.scene.LiveView`)."""
+    frame rate (:class:`suture_gym.render.live.LiveView`)."""
 
     SECTION: ClassVar[str] = "render"
 
@@ -822,8 +822,9 @@ def load_config(task: str, source: EnvConfig | dict | str | os.PathLike | None =
 
     Args:
         task: a registered task (:func:`~suture_gym.envs.registry.registered_tasks`).
-        source: None (defaults), an :class:`EnvConfig` (used as is; its ``task`` must match), a nested mapping
-            or the path of a YAML file holding one. A ``task`` key, if present, must name ``task``.
+        source: None (defaults), an :class:`EnvConfig` (used as is; its ``task`` must match), a nested mapping,
+            the path of a YAML file holding one, or the name of a shipped one (:mod:`suture_gym.configs`). A ``task``
+            key, if present, must name ``task``.
 
     Raises:
         ValueError: unknown keys (named by dotted path), wrong types, out-of-range values, or a task mismatch.
@@ -833,7 +834,7 @@ def load_config(task: str, source: EnvConfig | dict | str | os.PathLike | None =
     else:
         overrides = {}
         if isinstance(source, (str, os.PathLike)):
-            overrides = read_yaml(Path(source))
+            overrides = read_yaml(env_config_path(source))
         elif isinstance(source, dict):
             overrides = source
         elif source is not None:

@@ -19,9 +19,9 @@ import gymnasium as gym
 import numpy as np
 
 import suture_gym.envs  # noqa: F401  (registers the ids)
+from suture_gym.baselines.surgeon import ScriptedSurgeon
 from suture_gym.measure.registry import benchmark
 from suture_gym.sim.coupling import NODE_IN
-from suture_gym.tasks.surgeon import ScriptedSurgeon
 
 TIMED_STEPS = 200
 #: The paper's suture: 200 nodes (20 cm here, 1 mm segments).

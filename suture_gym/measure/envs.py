@@ -10,7 +10,7 @@ times env steps on one thread. Two workloads:
 
 * ``env_steps_per_s``: uniformly random actions from a seeded action space, resetting whenever an episode
   ends (the resets' time included), the usual definition;
-* ``env_steps_per_s_scripted``: the scripted surgeon (:class:`~suture_gym.tasks.surgeon.ScriptedSurgeon`)
+* ``env_steps_per_s_scripted``: the scripted surgeon (:class:`~suture_gym.baselines.surgeon.ScriptedSurgeon`)
   turning the needle along the planned arc at 2 rad/s and pulling the thread, so the needle is inside the
   tissue most of the time (path growth, node-path rows), the heavier case.
 
@@ -30,10 +30,10 @@ import gymnasium as gym
 import numpy as np
 
 import suture_gym.envs  # registers the ids
+from suture_gym.baselines.surgeon import ScriptedSurgeon
 from suture_gym.envs import ENV_IDS
 from suture_gym.envs.vector import SutureVectorEnv
 from suture_gym.measure.registry import CheckResult, benchmark, check
-from suture_gym.tasks.surgeon import ScriptedSurgeon
 
 WARMUP_STEPS = 50
 #: Tip-angle advance of the scripted surgeon in the scripted benchmark, rad/s.
@@ -61,7 +61,7 @@ def _random_run(env: gym.Env, steps: int, seed: int) -> tuple[np.ndarray, np.nda
 
 
 def _scripted_run(env: gym.Env, steps: int, seed: int) -> float:
-    """Wall time (s) of ``steps`` steps of the scripted surgeon (:class:`~suture_gym.tasks.surgeon.ScriptedSurgeon`,
+    """Wall time (s) of ``steps`` steps of the scripted surgeon (:class:`~suture_gym.baselines.surgeon.ScriptedSurgeon`,
     turning at :data:`SCRIPTED_TURN_RATE`), restarting each episode when it ends."""
     surgeon = ScriptedSurgeon(env, turn_rate=SCRIPTED_TURN_RATE)
     obs, _ = env.reset(seed=seed)
@@ -126,7 +126,7 @@ _register_env_benchmarks()
 
 
 def _scripted_episode(env_id: str, turn_rate: float, pull_speed: float | None) -> dict:
-    """Run the scripted surgeon (:class:`~suture_gym.tasks.surgeon.ScriptedSurgeon`) through one episode of
+    """Run the scripted surgeon (:class:`~suture_gym.baselines.surgeon.ScriptedSurgeon`) through one episode of
     ``env_id`` (seed 0, default config, wrench actions), turning at ``turn_rate`` rad/s and pulling at
     ``pull_speed`` m/s (None: the task's). Returns the recorded entry and exit errors (m), the thread pulled
     through (m) and the end flags."""
@@ -164,7 +164,7 @@ def _scripted_settings(env_id: str, turn_rate: float, pull_speed: float | None) 
     unwrapped = gym.make(env_id).unwrapped
     speed = unwrapped.task.SURGEON_PULL_SPEED if pull_speed is None else pull_speed
     return {"env_id": env_id, "seed": 0, "turn_rate_rad_s": turn_rate, "pull_speed_m_s": speed,
-            "surgeon": "suture_gym.tasks.surgeon.ScriptedSurgeon", "turn_end": "exit angle + needle arc + 0.3 rad",
+            "surgeon": "suture_gym.baselines.surgeon.ScriptedSurgeon", "turn_end": "exit angle + needle arc + 0.3 rad",
             "config": config_to_dict(unwrapped.config)}
 
 

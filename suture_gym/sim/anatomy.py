@@ -23,6 +23,10 @@ from suture_gym.sim.mesh import TetMesh, box_tet_grid, surface_triangles
 from suture_gym.sim.model import TissueMaterial
 from suture_gym.sim.scenes import STANDARD_GRAVITY, Scene, _scene
 
+#: Scene kinds with an incision instead of two bars (this module's abdominal wall and hand, a user's mesh): their
+#: stitches are planned on the built tissue (:func:`~suture_gym.tasks.geometry.plan_across_incision`).
+ANATOMY_KINDS: tuple[str, ...] = ("abdominal_wall", "hand", "mesh")
+
 #: Abdominal wall layers, top first: ``(name, thickness m, material)``; the last layer fills the rest. Skin is
 #: the suture pad's 300 kPa (the environments' default; skin is reported from tens of kPa to about 1 MPa),
 #: subcutaneous fat much softer, muscle in between: plausible contrasts, not measured values. With a needle they do

@@ -58,6 +58,7 @@ from typing import ClassVar
 
 import numpy as np
 
+from suture_gym.sim.anatomy import ANATOMY_KINDS
 from suture_gym.sim.rod import RodModel, RodState
 from suture_gym.tasks.geometry import PlannedArc
 
@@ -215,9 +216,6 @@ class StepContext:
     failed: bool
 
 
-#: Scene kinds with an incision instead of two bars (:mod:`suture_gym.sim.anatomy`, a user's mesh): their stitches
-#: are planned on the built tissue (:func:`~suture_gym.tasks.geometry.plan_across_incision`).
-ANATOMY_KINDS: tuple[str, ...] = ("abdominal_wall", "hand", "mesh")
 #: Scene kinds with a wound to suture.
 WOUND_KINDS: tuple[str, ...] = ("wound", *ANATOMY_KINDS)
 

@@ -2,11 +2,11 @@
 
 It serves one env on a viser page (``http://127.0.0.1:8080`` by default; the simulation runs whether or not a
 browser is connected) and steps it with a driver: a policy (``--policy expert | random | path/to/model.zip``,
-the loaders of :mod:`agents.evaluation`, a model with the VecNormalize statistics saved beside it) or the
+the loaders of :mod:`suture_gym.baselines.evaluation`, a model with the VecNormalize statistics saved beside it) or the
 teleoperator (``--policy teleop``, the default; :class:`~suture_gym.viewer.teleop.Teleop`; ``--spacemouse`` adds a
 3D mouse). A teleoperation key pressed (or the 3D mouse deflected) while a policy drives takes over from it.
 
-Page: the scene and read-outs of :class:`~suture_gym.viewer.scene.LiveView`; *Controls*: pause, single step,
+Page: the scene and read-outs of :class:`~suture_gym.render.live.LiveView`; *Controls*: pause, single step,
 reset with a seed, speed (simulated seconds per wall-clock second; the simulator's own rate caps it), driver;
 *View*: tissue opacity, each layer shown or hidden; *Teleoperation*: buttons for every key and the step sizes;
 *Record*: record episodes and save them as a Minari dataset (:class:`~suture_gym.viewer.teleop.DemoRecorder`).
@@ -17,8 +17,7 @@ Every GUI callback calls a public method of :class:`ViewerApp` (:meth:`~ViewerAp
 :meth:`~ViewerApp.set_paused`, :meth:`~ViewerApp.step_once`, :meth:`~ViewerApp.reset`, ...), under one lock shared
 with the stepping loop, so a script (or a test) drives the viewer exactly as the page does.
 
-This module is an application like ``scripts/``: it uses the repository's ``agents`` package (policies, Minari
-datasets), so run it from the repository root.
+It sits above the env layer, beside :mod:`suture_gym.baselines` (policies, Minari datasets), which it uses.
 """
 
 from __future__ import annotations
@@ -33,9 +32,9 @@ import gymnasium as gym
 import numpy as np
 
 import suture_gym  # noqa: F401  (registers the ids)
-from agents.datasets import default_dataset_id
-from agents.evaluation import episode_end, make_policy, model_vecnormalize
-from suture_gym.viewer.scene import LAYERS, EpisodeStatus, LiveView
+from suture_gym.baselines.datasets import default_dataset_id
+from suture_gym.baselines.evaluation import episode_end, make_policy, model_vecnormalize
+from suture_gym.render.live import LAYERS, EpisodeStatus, LiveView
 from suture_gym.viewer.teleop import KEYS, RESYNC_KEY, DemoRecorder, SpaceMouse, Teleop
 
 #: The teleoperator as a driver (``--policy teleop``).

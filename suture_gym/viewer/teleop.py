@@ -14,8 +14,8 @@ proxy back on the grip (drops what the holder has not followed). A 3D mouse (:cl
 moves the proxy continuously instead.
 
 :class:`DemoRecorder` buffers teleoperated episodes and writes them as a Minari dataset in the format of
-:mod:`agents.datasets` (the scripted expert's), which :func:`agents.imitation.load_minari_demos` reads for
-behaviour cloning.
+:mod:`suture_gym.baselines.datasets` (the scripted expert's), which
+:func:`suture_gym.baselines.imitation.load_minari_demos` reads for behaviour cloning.
 """
 
 from __future__ import annotations
@@ -154,8 +154,8 @@ class DemoRecorder:
 
     :meth:`start` at each reset, :meth:`add` after each step; :meth:`save` writes every episode recorded so far
     (an episode still running is closed first, its last step marked truncated) with
-    :func:`agents.datasets.write_minari` and empties the buffer. Needs the repository's ``agents`` package and
-    Minari (``pip install 'suture_gym[data]'``).
+    :func:`suture_gym.baselines.datasets.write_minari` and empties the buffer. Needs the repository's ``agents`` package
+    and Minari (``pip install 'suture_gym[data]'``).
     """
 
     def __init__(self) -> None:
@@ -170,7 +170,7 @@ class DemoRecorder:
 
     def start(self, seed: int | None, obs, info: dict) -> None:
         """Begin an episode at a reset with env seed ``seed`` (closing the running one)."""
-        from agents.datasets import RecordedEpisode
+        from suture_gym.baselines.datasets import RecordedEpisode
 
         self.finish()
         self._current = RecordedEpisode(seed=-1 if seed is None else int(seed), reset_obs=obs, reset_info=info)
@@ -201,7 +201,7 @@ class DemoRecorder:
 
     def save(self, env, dataset_id: str, root=None, algorithm_name: str = "suture_gym.viewer (teleop)") -> dict:
         """Write the recorded episodes as the Minari dataset ``dataset_id`` under ``root`` (see
-        :func:`agents.datasets.datasets_root`) for the env ``env`` (made by ``gym.make``, for its spec);
+        :func:`suture_gym.baselines.datasets.datasets_root`) for the env ``env`` (made by ``gym.make``, for its spec);
         ``algorithm_name`` names who acted in the dataset's metadata.
 
         Raises:
@@ -210,7 +210,7 @@ class DemoRecorder:
         Returns:
             ``{episodes, steps, dataset_id, root}``.
         """
-        from agents.datasets import write_minari
+        from suture_gym.baselines.datasets import write_minari
 
         self.finish()
         if not self.episodes:

@@ -1,13 +1,13 @@
 """Scripted expert for the SutureGym tasks, and demonstration recording.
 
-:class:`ExpertPolicy` is the package's scripted surgeon, :class:`~suture_gym.tasks.surgeon.ScriptedSurgeon`
+:class:`ExpertPolicy` is the package's scripted surgeon, :class:`~suture_gym.baselines.surgeon.ScriptedSurgeon`
 (turn the needle about its own centre along each planned stitch, pull the thread, carry the needle to the next
 stitch), acting through the env's action space only, so it works in both ``wrench`` and ``pose_delta`` action
 modes. Its default speeds are the task's (``SURGEON_TURN_RATE``, ``SURGEON_PULL_SPEED``). The env's start phases
-and the measurements drive the same surgeon (:mod:`suture_gym.tasks.surgeon`).
+follow the same motions (:mod:`suture_gym.tasks.surgeon`).
 
-Recording: ``python -m agents.expert --env ID --episodes N --out demos.npz`` writes the observations, actions,
-rewards, tip forces and episode boundaries of N seeded expert episodes (see :func:`record`);
+Recording: ``python -m suture_gym.baselines.expert --env ID --episodes N --out demos.npz`` writes the observations,
+actions, rewards, tip forces and episode boundaries of N seeded expert episodes (see :func:`record`);
 ``--minari [DATASET_ID] [--root DIR]`` writes them as a Minari dataset instead (:func:`record_minari`).
 """
 
@@ -23,22 +23,15 @@ from pathlib import Path
 import gymnasium as gym
 import numpy as np
 
-from agents.datasets import RecordedEpisode
+from suture_gym.baselines.datasets import RecordedEpisode
+from suture_gym.baselines.surgeon import LIFT, TRANSIT_SPEED, WAYPOINT_TOLERANCE, ScriptedSurgeon
 from suture_gym.sim.needle import needle_point_velocity
 from suture_gym.sim.quat import quat_conj, quat_mul, quat_rotation_vector
-from suture_gym.tasks.surgeon import (
-    LIFT,
-    PULL_DAMPING_PER_MAX_FORCE,
-    TRANSIT_SPEED,
-    WAYPOINT_TOLERANCE,
-    ScriptedSurgeon,
-    swage_out_angle,
-    thread_pull_wrench,
-)
+from suture_gym.tasks.surgeon import PULL_DAMPING_PER_MAX_FORCE, swage_out_angle, thread_pull_wrench
 
 #: :class:`FeedbackExpert`'s transit: the distance (m) within which the grip's commanded velocity shrinks in
 #: proportion to what is left (height or horizontal distance), the horizontal distance (m) from the next approach
-#: pose over which it glides down from :data:`~suture_gym.tasks.surgeon.LIFT` above it, and the rate (rad/s) and
+#: pose over which it glides down from :data:`~suture_gym.baselines.surgeon.LIFT` above it, and the rate (rad/s) and
 #: the angle (rad) within which that rate shrinks in proportion, at which it turns the needle toward the
 #: approach pose's orientation.
 TRANSIT_SLOWDOWN = 0.005
@@ -49,7 +42,7 @@ TRANSIT_TURN_SLOWDOWN = 0.1
 
 class ExpertPolicy(ScriptedSurgeon):
     """Scripted expert: a callable ``obs -> action`` (``(6,) float32`` in [-1, 1]) with :meth:`reset`; see
-    :class:`~suture_gym.tasks.surgeon.ScriptedSurgeon` for the plan and the arguments (``env``, ``turn_rate``
+    :class:`~suture_gym.baselines.surgeon.ScriptedSurgeon` for the plan and the arguments (``env``, ``turn_rate``
     rad/s, ``pull_speed`` m/s)."""
 
 
@@ -71,11 +64,11 @@ class FeedbackExpert(ExpertPolicy):
     pulled with their mean, about nothing (the full coupling's orientation hold flips the torque labels likewise).
     The transit between stitches (``wrench`` mode) is soft for the same reason, and a function of the state
     alone (the expert's waypoints depend on where its transit began): a velocity field
-    (:meth:`transit_velocity`) that rises to :data:`~suture_gym.tasks.surgeon.LIFT` above the next approach pose,
+    (:meth:`transit_velocity`) that rises to :data:`~suture_gym.baselines.surgeon.LIFT` above the next approach pose,
     crosses at that height and glides down onto it, and turns the needle toward its orientation; the label is
     the damped force and torque toward those velocities, with the pull's damping and the softened coupling's
     angular damping, both scaled by ``gain``. It ends within
-    :data:`~suture_gym.tasks.surgeon.WAYPOINT_TOLERANCE` of the approach pose.
+    :data:`~suture_gym.baselines.surgeon.WAYPOINT_TOLERANCE` of the approach pose.
 
     Args:
         env, turn_rate, pull_speed: as :class:`ExpertPolicy` (``turn_rate`` is unused while turning, but the
@@ -150,10 +143,10 @@ class FeedbackExpert(ExpertPolicy):
     @staticmethod
     def transit_velocity(grip: np.ndarray, start: np.ndarray) -> np.ndarray:
         """Commanded grip velocity (3,) m/s of the transit at grip position ``grip`` (3,) m toward the approach
-        pose's grip position ``start`` (3,) m: up to :data:`~suture_gym.tasks.surgeon.LIFT` above ``start``
+        pose's grip position ``start`` (3,) m: up to :data:`~suture_gym.baselines.surgeon.LIFT` above ``start``
         (lower within :data:`TRANSIT_GLIDE` of it horizontally, reaching it at zero distance), across only once
         within :data:`TRANSIT_SLOWDOWN` of that height, each component at most
-        :data:`~suture_gym.tasks.surgeon.TRANSIT_SPEED` and in proportion to what is left within
+        :data:`~suture_gym.baselines.surgeon.TRANSIT_SPEED` and in proportion to what is left within
         :data:`TRANSIT_SLOWDOWN`."""
         across = start[:2] - grip[:2]
         distance = float(np.linalg.norm(across))
@@ -180,7 +173,8 @@ class FeedbackExpert(ExpertPolicy):
 def expert_episodes(env: gym.Env, episodes: int, seed: int = 0,
                     progress: bool = False) -> Iterator[RecordedEpisode]:
     """Run :class:`ExpertPolicy` on ``env`` for ``episodes`` episodes (env seeds ``seed, seed + 1, ...``), each
-    until it terminates or is truncated; yields each as an :class:`~agents.datasets.RecordedEpisode` once it ends."""
+    until it terminates or is truncated; yields each as a
+    :class:`~suture_gym.baselines.datasets.RecordedEpisode` once it ends."""
     if isinstance(episodes, bool) or not isinstance(episodes, int) or episodes <= 0:
         raise ValueError(f"episodes must be a positive integer, got {episodes!r}")
     expert = ExpertPolicy(env)
@@ -276,13 +270,13 @@ def record_minari(env_id: str, episodes: int, dataset_id: str | None = None, see
                   author: str | None = None, author_email: str | None = None,
                   code_permalink: str | None = None) -> dict:
     """Run ``episodes`` expert episodes of ``env_id`` (env seeds ``seed, seed + 1, ...``) and write them as the
-    Minari dataset ``dataset_id`` (default :func:`agents.datasets.default_dataset_id`) under
-    :func:`agents.datasets.datasets_root` ``(root)`` with :func:`agents.datasets.write_minari`; needs
-    ``pip install 'suture_gym[data]'``.
+    Minari dataset ``dataset_id`` (default :func:`suture_gym.baselines.datasets.default_dataset_id`) under
+    :func:`suture_gym.baselines.datasets.datasets_root` ``(root)`` with
+    :func:`suture_gym.baselines.datasets.write_minari`; needs ``pip install 'suture_gym[data]'``.
 
     Each episode holds Minari's ``observations`` (``T + 1``: the reset's, then each step's), ``actions (T, 6)``,
-    ``rewards``, ``terminations``, ``truncations``, the infos of :data:`agents.datasets.INFO_KEYS` (``T + 1``),
-    and its env seed; the dataset records the env spec (id, time limit, ``env_kwargs``, which must then be
+    ``rewards``, ``terminations``, ``truncations``, the infos of :data:`suture_gym.baselines.datasets.INFO_KEYS` (``T +
+    1``), and its env seed; the dataset records the env spec (id, time limit, ``env_kwargs``, which must then be
     JSON data such as a config path), so ``dataset.recover_environment()`` rebuilds the env after
     ``import suture_gym``. ``author``, ``author_email`` and ``code_permalink`` go to the dataset's metadata
     (Minari warns about each one left out).
@@ -296,16 +290,16 @@ def record_minari(env_id: str, episodes: int, dataset_id: str | None = None, see
     import minari  # noqa: F401  (fails before the episodes are run when Minari is missing)
 
     import suture_gym  # noqa: F401  (registers the ids)
-    from agents.datasets import INFO_KEYS, default_dataset_id, write_minari
+    from suture_gym.baselines.datasets import INFO_KEYS, default_dataset_id, write_minari
 
     dataset_id = dataset_id or default_dataset_id(env_id)
     env = gym.make(env_id, **(env_kwargs or {}))
     recorded = list(expert_episodes(env, episodes, seed, progress))
     success = [bool(e.infos[-1].get("is_success", False)) for e in recorded]
     folder = write_minari(
-        dataset_id, recorded, env, root=root, algorithm_name="agents.expert.ExpertPolicy", author=author,
+        dataset_id, recorded, env, root=root, algorithm_name="suture_gym.baselines.expert.ExpertPolicy", author=author,
         author_email=author_email, code_permalink=code_permalink,
-        description=f"Scripted-expert (suture_gym agents.expert.ExpertPolicy) demonstrations of {env_id}, env "
+        description=f"Scripted-expert (suture_gym.baselines.expert.ExpertPolicy) demonstrations of {env_id}, env "
                     f"seeds {seed}-{seed + episodes - 1}; per-step infos {sorted(INFO_KEYS)}")
     env.close()
     return {"episodes": episodes, "steps": sum(len(e.actions) for e in recorded),

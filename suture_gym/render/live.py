@@ -9,7 +9,10 @@ arrow), which viser sends as property updates of the existing nodes, so the tria
 episode layout, not every frame. :meth:`LiveView.show` pushes at most ``fps`` frames per wall-clock second and
 skips the others (the env may step faster or slower than that).
 
-Scene frame: the simulator's world frame, metres, z up (gravity along -z).
+Scene frame: the simulator's world frame, metres, z up (gravity along -z). Like the rest of
+:mod:`suture_gym.render` it takes plain arrays and never imports the simulator; viser (the ``viewer`` extra) is
+imported only when a view is made (:func:`require_viser`). ``render_mode="human"`` of every env is one of these
+views; the viewer application around it is :mod:`suture_gym.viewer`.
 """
 
 from __future__ import annotations
@@ -23,7 +26,19 @@ from dataclasses import dataclass
 import numpy as np
 
 from suture_gym.render import RenderFrame, SceneStyle
-from suture_gym.viewer import require_viser
+
+#: What to install when viser is missing.
+INSTALL_HINT = "pip install 'suture_gym[viewer]'  (or: pip install viser)"
+
+
+def require_viser():
+    """The ``viser`` module; ImportError naming the ``viewer`` extra when it is not installed."""
+    try:
+        import viser
+    except ImportError as err:
+        raise ImportError(f"the live viewer (render_mode='human', python -m suture_gym.viewer) needs viser, the "
+                          f"'viewer' extra: {INSTALL_HINT}") from err
+    return viser
 
 #: Reaction-force arrow length per newton, m/N (5 N draws 1 cm, half the tissue pad's height).
 ARROW_M_PER_N = 2.0e-3

@@ -4,13 +4,13 @@ Behaviour cloning trains on the states the expert visits; the cloned policy drif
 it never saw, where its errors compound (a needle a millimetre off the planned circle after a few hundred
 steps of a 1,300-step stitch). DAgger rolls the learner out, asks the oracle what it would have done in every
 state the learner visited, adds those labels to the data and refits: the policy is trained on its own state
-distribution. The oracle must label any state, so it is :class:`agents.expert.FeedbackExpert` (the expert's
-turn closed on the measured tip), not the clock-driven :class:`~agents.expert.ExpertPolicy`.
+distribution. The oracle must label any state, so it is :class:`suture_gym.baselines.expert.FeedbackExpert` (the
+expert's turn closed on the measured tip), not the clock-driven :class:`~suture_gym.baselines.expert.ExpertPolicy`.
 
 Iteration ``i`` (0-based) runs ``episodes_per_iteration`` episodes in which each step's executed action is the
 oracle's with probability ``beta * beta_decay ** i`` and the learner's (deterministic mean) otherwise; every
 visited observation is stored with the oracle's label. After each iteration the policy's mean is refitted on all
-the data so far (:func:`agents.imitation.behaviour_clone`, which also fits the value head to the rollouts'
+the data so far (:func:`suture_gym.baselines.imitation.behaviour_clone`, which also fits the value head to the rollouts'
 returns, so PPO can fine-tune the result); with ``normalize``, the observation statistics are those of all the
 data so far, updated before each refit (statistics of the expert's states alone make the learner's own states
 extreme: the needle's off-plane coordinates vary by 16 um in the expert's SutureThrow episodes). An episode
@@ -24,13 +24,13 @@ weights and statistics at every iteration; the refit stays in the calling proces
 number of workers (:func:`train_dagger`).
 
 The learner is an SB3 :class:`~stable_baselines3.PPO` model (``MlpPolicy``), saved like every other run of
-:func:`agents.training.train` (``final_model.zip``, ``final_vecnormalize.pkl``, ``checkpoints/``,
+:func:`suture_gym.baselines.training.train` (``final_model.zip``, ``final_vecnormalize.pkl``, ``checkpoints/``,
 ``eval/evaluations.npz``, ``learning_curve.png``, ``summary.json``), so ``scripts/evaluate.py`` and PPO's
 ``--resume`` read it. ``best_model.zip`` is the checkpoint whose learner-alone iteration succeeded most often
 (the later one on ties), with its own statistics in ``best_vecnormalize.pkl``.
 
 Why by hand: the ``imitation`` library's DAgger pins its own SB3 and Gymnasium versions (see
-:mod:`agents.imitation`), and the loop is short.
+:mod:`suture_gym.baselines.imitation`), and the loop is short.
 """
 
 from __future__ import annotations
@@ -49,8 +49,8 @@ import numpy as np
 #: Keys of a config's ``dagger`` mapping and their defaults: iterations (>= 1), episodes per iteration (>= 1),
 #: the oracle's share of the executed actions in iteration 0 (``beta``, in [0, 1]) and its decay per iteration
 #: (``beta_decay``, in [0, 1]), the refit's passes over all data (``epochs``), minibatch size and Adam step, the
-#: oracle's ``lead`` (rad) and ``gain`` (:class:`agents.expert.FeedbackExpert`), and the steps after which a still
-#: needle ends a rollout (``stall_steps``, see :data:`STALL_DISTANCE`).
+#: oracle's ``lead`` (rad) and ``gain`` (:class:`suture_gym.baselines.expert.FeedbackExpert`), and the steps after which
+#: a still needle ends a rollout (``stall_steps``, see :data:`STALL_DISTANCE`).
 DAGGER_KEYS: dict[str, Any] = {"iterations": 8, "episodes_per_iteration": 10, "beta": 1.0, "beta_decay": 0.0,
                                "epochs": 10, "batch_size": 256, "learning_rate": 1e-3, "lead": 0.02,
                                "gain": 1.0, "stall_steps": 100}
@@ -98,10 +98,11 @@ def train_dagger(env_id: str, seed: int, run_dir: Path, total: int, script: dict
         env_id: registered SutureGym id with flat observations.
         seed: seeds the policy's initialisation, the executed-action draws and the env seeds
             (:data:`SEED_BASE`).
-        run_dir: the run directory (exists, ``config.yaml`` already written by :func:`agents.training.train`).
+        run_dir: the run directory (exists, ``config.yaml`` already written by
+            :func:`suture_gym.baselines.training.train`).
         total: env-step budget: no iteration starts once it is spent (an iteration started runs to its end).
-        script: the config's script settings (:func:`agents.hyperparams.resolve`): ``policy``, ``normalize``,
-            ``env_kwargs`` and the ``dagger`` mapping (:func:`dagger_settings`).
+        script: the config's script settings (:func:`suture_gym.baselines.hyperparams.resolve`): ``policy``,
+            ``normalize``, ``env_kwargs`` and the ``dagger`` mapping (:func:`dagger_settings`).
         kwargs: the PPO constructor's keyword arguments (``policy_kwargs``, and those a later PPO fine-tuning
             would use).
         progress_bar: a tqdm bar over env steps on stderr.
@@ -120,7 +121,7 @@ def train_dagger(env_id: str, seed: int, run_dir: Path, total: int, script: dict
     from stable_baselines3 import PPO
     from stable_baselines3.common.vec_env import DummyVecEnv, VecNormalize
 
-    from agents.imitation import behaviour_clone
+    from suture_gym.baselines.imitation import behaviour_clone
 
     settings = dagger_settings(script.get("dagger", {}))
     if isinstance(workers, bool) or not isinstance(workers, int) or workers < 1:
@@ -139,7 +140,7 @@ def train_dagger(env_id: str, seed: int, run_dir: Path, total: int, script: dict
     model = PPO(script["policy"], vec_env, seed=seed, device="cpu", verbose=0, **kwargs)
     pool = None
     if workers > 1:
-        from agents.workers import worker_pool
+        from suture_gym.baselines.workers import worker_pool
 
         pool = worker_pool(workers, _start_worker, (env_id, env_kwargs, settings, script["policy"], kwargs))
 
@@ -228,7 +229,7 @@ def train_dagger(env_id: str, seed: int, run_dir: Path, total: int, script: dict
     if curve["timesteps"]:
         (run_dir / "eval").mkdir(exist_ok=True)
         np.savez(run_dir / "eval" / "evaluations.npz", **{k: np.asarray(v) for k, v in curve.items()})
-        from agents.plotting import plot_learning_curve
+        from suture_gym.baselines.plotting import plot_learning_curve
 
         plot_learning_curve(run_dir / "eval" / "evaluations.npz", run_dir / "learning_curve.png",
                             title=f"DAgger on {env_id}")
@@ -257,7 +258,7 @@ class _Rollouts:
         import gymnasium as gym
 
         import suture_gym  # noqa: F401  (registers the ids)
-        from agents.expert import FeedbackExpert
+        from suture_gym.baselines.expert import FeedbackExpert
 
         self.env = gym.make(env_id, **env_kwargs)
         self.oracle = FeedbackExpert(self.env, lead=settings["lead"], gain=settings["gain"])

@@ -1,8 +1,9 @@
 """Hyperparameter search with Optuna, in the rl-baselines3-zoo style (``scripts/tune.py`` is the command line).
 
 Each trial samples hyperparameters (:data:`SAMPLERS`), merges them into the agent config of the env id
-(``configs/agents/<algo>.yml``, the format of :mod:`agents.hyperparams`), trains for a short budget and evaluates
-the deterministic policy ``n_evaluations`` times on the way; each evaluation's mean return is reported to Optuna,
+(``configs/agents/<algo>.yml``, the format of :mod:`suture_gym.baselines.hyperparams`), trains for a short budget and
+evaluates the deterministic policy ``n_evaluations`` times on the way; each evaluation's mean return is reported to
+Optuna,
 whose median pruner stops trials that fall behind, and the last one is the trial's value (maximised). The
 trial's success rate at that evaluation and the full hyperparameters it trained with (a mapping to paste into
 the agent config) are stored as the trial's user attributes ``success_rate`` and ``hyperparams``.
@@ -126,8 +127,8 @@ def objective(trial, algo: str, env_id: str, base: dict[str, Any], overrides: di
     import optuna
     from stable_baselines3.common.callbacks import EvalCallback
 
-    from agents.hyperparams import resolve
-    from agents.training import _warm_start, algo_class, make_train_envs
+    from suture_gym.baselines.hyperparams import resolve
+    from suture_gym.baselines.training import _warm_start, algo_class, make_train_envs
 
     params = trial_hyperparams(algo, base, trial, overrides)
     trial.set_user_attr("hyperparams", params)

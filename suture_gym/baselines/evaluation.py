@@ -18,7 +18,7 @@ from pathlib import Path
 import gymnasium as gym
 import numpy as np
 
-from agents.workers import worker_pool
+from suture_gym.baselines.workers import worker_pool
 
 
 @dataclass
@@ -41,7 +41,7 @@ class Episode:
 
 #: Why an episode ended, in the order :func:`episode_end` checks the last step's ``info``.
 #: Policy names that are not saved models: a random policy, the scripted expert and its feedback variant
-#: (:class:`agents.expert.FeedbackExpert`, DAgger's oracle).
+#: (:class:`suture_gym.baselines.expert.FeedbackExpert`, DAgger's oracle).
 SCRIPTED = ("random", "expert", "feedback_expert")
 ENDS = ("success", "diverged", "tear", "out_of_workspace", "missed", "time_limit", "terminated")
 
@@ -72,11 +72,11 @@ def make_policy(policy: str, env: gym.Env, seed: int,
         space.seed(seed)
         return lambda obs: space.sample()
     if policy == "expert":
-        from agents.expert import ExpertPolicy
+        from suture_gym.baselines.expert import ExpertPolicy
 
         return ExpertPolicy(env)
     if policy == "feedback_expert":
-        from agents.expert import FeedbackExpert
+        from suture_gym.baselines.expert import FeedbackExpert
 
         return FeedbackExpert(env)
     return _saved_model_policy(Path(policy), env, vecnormalize)
@@ -100,7 +100,7 @@ def model_vecnormalize(policy: str, vecnormalize: str | Path | None = None) -> P
         return path
     if policy in SCRIPTED:
         return None
-    from agents.training import _sibling
+    from suture_gym.baselines.training import _sibling
 
     model = Path(policy)
     if not model.exists():
@@ -136,7 +136,7 @@ def run_config(model_path: str | Path) -> dict:
 
 
 def _saved_model_policy(path: Path, env: gym.Env, vecnormalize: Path | None) -> Callable[[object], np.ndarray]:
-    from agents.training import ALGOS, algo_class
+    from suture_gym.baselines.training import ALGOS, algo_class
 
     if not path.exists():
         raise FileNotFoundError(f"policy {str(path)!r} is neither 'random', 'expert' nor an existing model file")
@@ -173,7 +173,7 @@ def _saved_model_policy(path: Path, env: gym.Env, vecnormalize: Path | None) -> 
 def trained_env_kwargs(policy: str) -> dict:
     """``env_kwargs`` a saved model was trained with (from its :func:`run_config`, relative config paths
     resolved); ``{}`` for ``random``, ``expert`` or a model without one."""
-    from agents.hyperparams import resolve
+    from suture_gym.baselines.hyperparams import resolve
 
     if policy in SCRIPTED:
         return {}
@@ -213,8 +213,7 @@ def evaluate(
         ``{env_id, env_kwargs, policy, vecnormalize, episodes, seed, success_rate, success_rate_stderr, mean_return,
         std_return, mean_episode_length, mean_tip_force, max_haptic_force (N, over all episodes),
         median_max_haptic_force (N, the median of each episode's largest), mean_final_gap, diverged_episodes,
-        end_counts,
-        per_episode}``; ``end_counts`` counts the episodes by how they ended (:data:`ENDS`, zeros left out).
+        end_counts, per_episode}``; ``end_counts`` counts the episodes by how they ended (:data:`ENDS`, zeros left out).
     """
     if episodes <= 0:
         raise ValueError(f"episodes must be positive, got {episodes}")

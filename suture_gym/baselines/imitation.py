@@ -3,9 +3,9 @@
 Why by hand: the one well-kept library for it (HumanCompatibleAI ``imitation``) pins its own Stable-Baselines3
 and Gymnasium versions; warm-starting an SB3 ``ActorCriticPolicy`` takes a few dozen lines on its own tensors.
 
-:func:`behaviour_clone` fits, on demonstrations recorded by :func:`agents.expert.record` (``.npz``,
+:func:`behaviour_clone` fits, on demonstrations recorded by :func:`suture_gym.baselines.expert.record` (``.npz``,
 :func:`load_demos`) or read from a Minari dataset (:func:`load_minari_demos`, e.g. one written by
-:func:`agents.expert.record_minari`):
+:func:`suture_gym.baselines.expert.record_minari`):
 
 * the policy's mean action to the expert's action (mean squared error; the policy's ``log_std`` is left as
   configured, so the fine-tuning still explores), and
@@ -53,7 +53,8 @@ def discounted_returns(rewards: np.ndarray, episode_starts: np.ndarray, gamma: f
 
 
 def load_demos(path: str | Path) -> dict[str, np.ndarray]:
-    """The arrays of a demonstration file written by :func:`agents.expert.record` (flat observations only)."""
+    """The arrays of a demonstration file written by :func:`suture_gym.baselines.expert.record` (flat observations
+    only)."""
     with np.load(path) as data:
         demos = {key: data[key] for key in data.files}
     if "observations" not in demos:
@@ -63,11 +64,11 @@ def load_demos(path: str | Path) -> dict[str, np.ndarray]:
 
 def load_minari_demos(dataset, root: str | Path | None = None) -> dict[str, np.ndarray]:
     """The arrays :func:`behaviour_clone` takes, from a Minari dataset of a flat-observation env (any Minari
-    dataset, not only those :func:`agents.expert.record_minari` writes).
+    dataset, not only those :func:`suture_gym.baselines.expert.record_minari` writes).
 
     Args:
         dataset: a :class:`minari.MinariDataset`, or the id of one under
-            :func:`agents.datasets.datasets_root` ``(root)``.
+            :func:`suture_gym.baselines.datasets.datasets_root` ``(root)``.
         root: where to look for a dataset given by id.
 
     Returns:
@@ -78,7 +79,7 @@ def load_minari_demos(dataset, root: str | Path | None = None) -> dict[str, np.n
         (N), ``tissue_costs (T,) float64`` and ``episode_success (E,) bool`` (the last step's ``is_success``).
     """
     if isinstance(dataset, str):
-        from agents.datasets import load_dataset
+        from suture_gym.baselines.datasets import load_dataset
 
         dataset = load_dataset(dataset, root)
     columns: dict[str, list] = {k: [] for k in ("observations", "next_observations", "actions", "rewards",

@@ -1,8 +1,9 @@
 """Demonstrations as Minari datasets, the Farama standard for offline RL (``pip install 'suture_gym[data]'``).
 
 A dataset is written by :func:`write_minari` from :class:`RecordedEpisode` records: the scripted expert's
-(:func:`agents.expert.record_minari`) or a human's teleoperated ones (:mod:`suture_gym.viewer`). It is read back
-for behaviour cloning by :func:`agents.imitation.load_minari_demos`; any Minari user reads it with
+(:func:`suture_gym.baselines.expert.record_minari`) or a human's teleoperated ones (:mod:`suture_gym.viewer`). It is
+read back for behaviour cloning by :func:`suture_gym.baselines.imitation.load_minari_demos`; any Minari user reads it
+with
 ``minari.load_dataset(dataset_id)`` (and rebuilds the env with ``dataset.recover_environment()`` after
 ``import suture_gym``).
 

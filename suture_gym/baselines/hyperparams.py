@@ -1,13 +1,15 @@
-"""rl-zoo-style agent configuration: ``configs/agents/<algo>.yml``, one top-level key per env id.
+"""rl-zoo-style agent configuration: ``suture_gym/configs/agents/<algo>.yml``, one top-level key per env id.
 
 Conventions (as in rl-baselines3-zoo, without its ``eval()``):
 
 - ``n_timesteps`` (int, env steps), ``policy`` (SB3 policy name), ``n_envs`` (int), ``normalize`` (bool or
-  a mapping of ``VecNormalize`` keyword arguments), ``env_kwargs`` (mapping passed to ``gym.make``; a relative
-  ``config`` path is taken from the repository root), ``behaviour_cloning`` (mapping: warm start from the
-  scripted expert, see :data:`BC_KEYS` and :mod:`agents.imitation`), ``dagger`` (mapping, ``configs/agents/dagger.yml``
-  only: see :data:`agents.dagger.DAGGER_KEYS`), and any keyword argument of the algorithm's constructor (PPO's for
-  ``dagger``, whose learner is a PPO model).
+  a mapping of ``VecNormalize`` keyword arguments), ``env_kwargs`` (mapping passed to ``gym.make``; ``config`` is a
+  YAML path or the name of a shipped env config, :func:`suture_gym.configs.env_config_path`), ``behaviour_cloning``
+  (mapping: warm start from the scripted expert, see :data:`BC_KEYS` and :mod:`suture_gym.baselines.imitation`),
+  ``dagger`` (mapping,
+  ``configs/agents/dagger.yml`` only: see :data:`suture_gym.baselines.dagger.DAGGER_KEYS`), and any keyword argument of
+  the algorithm's constructor
+  (PPO's for ``dagger``, whose learner is a PPO model).
 - Schedules are strings ``lin_<value>`` (linear decay from ``value`` to 0 over training).
 - ``policy_kwargs`` is a mapping; ``activation_fn`` names a torch module (``tanh``, ``relu``, ``elu``,
   ``leaky_relu``); ``net_arch`` is a list or a dict ``{pi: [...], vf: [...]}`` / ``{pi: [...], qf: [...]}``.
@@ -23,14 +25,14 @@ from typing import Any
 
 import yaml
 
-ROOT = Path(__file__).resolve().parents[1]
-CONFIG_DIR = ROOT / "configs" / "agents"
+from suture_gym.configs import AGENT_DIR as CONFIG_DIR
+from suture_gym.configs import env_config_path
 
 #: Keys consumed by the training script rather than passed to the algorithm.
 SCRIPT_KEYS = ("n_timesteps", "policy", "n_envs", "normalize", "env_kwargs", "behaviour_cloning", "dagger")
 #: Keys of ``behaviour_cloning`` and their defaults: expert episodes recorded (env seeds ``seed + 2000 ...``),
 #: passes over them, minibatch size, Adam step size, and ``dataset``: the id of a Minari dataset of the same env
-#: id to clone instead of recording (:func:`agents.imitation.load_minari_demos`; looked up in
+#: id to clone instead of recording (:func:`suture_gym.baselines.imitation.load_minari_demos`; looked up in
 #: ``$MINARI_DATASETS_PATH``, else ``~/.minari/datasets``).
 BC_KEYS = {"expert_episodes": 40, "epochs": 30, "batch_size": 256, "learning_rate": 1e-3, "dataset": None}
 
@@ -74,14 +76,14 @@ def resolve(hyperparams: dict[str, Any]) -> tuple[dict[str, Any], dict[str, Any]
     if "behaviour_cloning" in script:
         script["behaviour_cloning"] = _behaviour_cloning(script["behaviour_cloning"])
     if "dagger" in script:
-        from agents.dagger import dagger_settings
+        from suture_gym.baselines.dagger import dagger_settings
 
         script["dagger"] = dagger_settings(script["dagger"])
     env_kwargs = script.get("env_kwargs") or {}
     if not isinstance(env_kwargs, dict):
         raise ValueError(f"env_kwargs must be a mapping, got {type(env_kwargs).__name__}")
-    if isinstance(env_kwargs.get("config"), str) and not Path(env_kwargs["config"]).is_absolute():
-        script["env_kwargs"] = {**env_kwargs, "config": str(ROOT / env_kwargs["config"])}
+    if isinstance(env_kwargs.get("config"), str):
+        script["env_kwargs"] = {**env_kwargs, "config": str(env_config_path(env_kwargs["config"]).resolve())}
     for key, value in list(params.items()):
         if isinstance(value, str) and value.startswith("lin_"):
             start = _number(value[4:], key)

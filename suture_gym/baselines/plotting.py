@@ -3,8 +3,8 @@
 
 Command line (e.g. the seeds of a baseline side by side)::
 
-    python -m agents.plotting runs/ppo_NeedleInsert_s*/eval/evaluations.npz --out curve.png --title "PPO"
-    python -m agents.plotting models/WoundClosure/seed*/training_summary.json --out curve.png
+    python -m suture_gym.baselines.plotting runs/ppo_NeedleInsert_s*/eval/evaluations.npz --out curve.png --title "PPO"
+    python -m suture_gym.baselines.plotting models/WoundClosure/seed*/training_summary.json --out curve.png
 """
 
 from __future__ import annotations
@@ -21,7 +21,7 @@ def load_curve(path: str | Path) -> dict[str, np.ndarray]:
     """One run's learning curve as ``{"timesteps": (E,), "results": (E, n), "successes": (E, n)}``.
 
     ``path`` is an ``evaluations.npz`` of ``EvalCallback`` (one column per evaluation episode), or a DAgger run's
-    ``summary.json``/``training_summary.json`` (:func:`agents.dagger.train_dagger`), whose learner-alone
+    ``summary.json``/``training_summary.json`` (:func:`suture_gym.baselines.dagger.train_dagger`), whose learner-alone
     iterations (``beta`` 0) are the points: at the env steps gathered before the rollout, the iteration's mean
     return and success rate (one column: the summary keeps no per-episode figures).
     """

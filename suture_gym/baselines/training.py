@@ -27,13 +27,14 @@ from typing import Any
 import numpy as np
 import yaml
 
-from agents.hyperparams import load_hyperparams, resolve
+from suture_gym.baselines.hyperparams import load_hyperparams, resolve
 
 ALGOS = ("ppo", "sac", "tqc", "a2c", "td3", "dagger")
 
 
 def algo_class(algo: str):
-    """The SB3 (or sb3-contrib) class for ``algo``; ``dagger`` (:mod:`agents.dagger`) trains a PPO model."""
+    """The SB3 (or sb3-contrib) class for ``algo``; ``dagger`` (:mod:`suture_gym.baselines.dagger`) trains a PPO
+    model."""
     if algo not in ALGOS:
         raise ValueError(f"unknown algo {algo!r}; expected one of {ALGOS}")
     if algo == "dagger":
@@ -115,8 +116,8 @@ def train(
     """Train ``algo`` on ``env_id`` and write the run directory described in the module docstring.
 
     Args:
-        algo: ``ppo``, ``sac``, ``tqc``, ``a2c``, ``td3`` or ``dagger`` (:mod:`agents.dagger`: imitation of
-            the scripted surgeon on the learner's own states; ``eval_freq``, ``eval_episodes`` and
+        algo: ``ppo``, ``sac``, ``tqc``, ``a2c``, ``td3`` or ``dagger`` (:mod:`suture_gym.baselines.dagger`:
+            imitation of the scripted surgeon on the learner's own states; ``eval_freq``, ``eval_episodes`` and
             ``checkpoint_freq`` do not apply, its learner-alone iterations are its evaluations and every
             iteration is checkpointed); hyperparameters come from ``configs/agents/<algo>.yml`` (or
             ``hyperparams``, a mapping in the same format).
@@ -155,7 +156,7 @@ def train(
     if algo == "dagger":
         if resume is not None:
             raise ValueError("a DAgger run cannot be resumed; fine-tune its model with PPO instead")
-        from agents.dagger import train_dagger
+        from suture_gym.baselines.dagger import train_dagger
 
         summary = train_dagger(env_id, seed, run_dir, total, script, kwargs, progress_bar, verbose, workers)
         (run_dir / "summary.json").write_text(json.dumps(summary, indent=2))
@@ -242,7 +243,7 @@ def train(
     mean_return = success = None
     evaluations = run_dir / "eval" / "evaluations.npz"
     if evaluations.exists():
-        from agents.plotting import plot_learning_curve
+        from suture_gym.baselines.plotting import plot_learning_curve
 
         plot_learning_curve(evaluations, run_dir / "learning_curve.png", title=f"{algo.upper()} on {env_id}")
         data = np.load(evaluations)
@@ -258,14 +259,15 @@ def train(
 
 def _warm_start(model, env_id: str, env_kwargs: dict, settings: dict, run_dir: Path, seed: int,
                 progress: bool) -> dict:
-    """Clone demonstrations into ``model`` (:mod:`agents.imitation`): the Minari dataset ``settings["dataset"]``,
-    or else the expert's, recorded into ``<run>/demos.npz``. Returns the cloning summary with the time taken (s),
+    """Clone demonstrations into ``model`` (:mod:`suture_gym.baselines.imitation`): the Minari dataset
+    ``settings["dataset"]``, or else the expert's, recorded into ``<run>/demos.npz``. Returns the cloning summary with
+    the time taken (s),
     the source and the demonstrations' success rate (None when the dataset records none)."""
-    from agents.imitation import behaviour_clone, load_demos, load_minari_demos
+    from suture_gym.baselines.imitation import behaviour_clone, load_demos, load_minari_demos
 
     t0 = time.perf_counter()
     if settings["dataset"] is not None:
-        from agents.datasets import load_dataset
+        from suture_gym.baselines.datasets import load_dataset
 
         dataset = load_dataset(settings["dataset"])
         recorded_on = dataset.env_spec.id if dataset.env_spec is not None else None
@@ -275,7 +277,7 @@ def _warm_start(model, env_id: str, env_kwargs: dict, settings: dict, run_dir: P
         demos = load_minari_demos(dataset)
         source = {"dataset": settings["dataset"]}
     else:
-        from agents.expert import record
+        from suture_gym.baselines.expert import record
 
         recorded = record(env_id, settings["expert_episodes"], run_dir / "demos.npz", seed=seed + 2000,
                           env_kwargs=env_kwargs, progress=progress)
