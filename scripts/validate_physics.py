@@ -1,68 +1,13 @@
-"""Validate the simulator against analytic references.
+"""``suture-gym validate`` (:mod:`suture_gym.cli.validate`) run from the checkout: one thread per pool and the
+checkout's numba cache (``scripts/_common.py``). ``--help`` lists the options."""
 
-Usage::
-
-    python scripts/validate_physics.py            # table on stdout
-    python scripts/validate_physics.py --json     # list of {name, measured, reference, tolerance, passed, ...}
-    python scripts/validate_physics.py --only hanging_bar cantilever
-    python scripts/validate_physics.py --list
-
-Exits with status 1 if any selected check fails, 2 on a bad argument.
-"""
-
-from __future__ import annotations
-
-import argparse
-import json
 import sys
-import time
 
 from _common import configure
 
 configure(threads=1)
 
-from tqdm import tqdm  # noqa: E402
-
-from suture_gym.measure import CHECKS, load_all  # noqa: E402
-
-
-def main(argv: list[str] | None = None) -> int:
-    parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
-    parser.add_argument("--json", action="store_true", help="print the results as JSON")
-    parser.add_argument("--only", nargs="+", metavar="NAME", help="run only these checks")
-    parser.add_argument("--list", action="store_true", help="list the registered checks and exit")
-    args = parser.parse_args(argv)
-
-    load_all()
-    if args.list:
-        print("\n".join(CHECKS))
-        return 0
-    names = args.only or list(CHECKS)
-    unknown = [n for n in names if n not in CHECKS]
-    if unknown:
-        parser.error(f"unknown check(s) {unknown}; known: {sorted(CHECKS)}")
-
-    results = []
-    bar = tqdm(names, desc="validate", unit="check", file=sys.stderr, disable=None)
-    for name in bar:
-        bar.set_postfix_str(name)
-        t0 = time.perf_counter()
-        result = CHECKS[name]().to_dict()
-        result["wall_s"] = round(time.perf_counter() - t0, 2)
-        results.append(result)
-
-    if args.json:
-        print(json.dumps(results, indent=2))
-    else:
-        print(f"{'check':28s} {'measured':>12s} {'reference':>12s} {'tolerance':>10s}  unit  result")
-        for r in results:
-            verdict = "PASS" if r["passed"] else "FAIL"
-            print(
-                f"{r['name']:28s} {r['measured']:12.5g} {r['reference']:12.5g} {r['tolerance']:10.3g}"
-                f"  {r['unit']:4s}  {verdict}"
-            )
-    return 0 if all(r["passed"] for r in results) else 1
-
+from suture_gym.cli.validate import main  # noqa: E402
 
 if __name__ == "__main__":
     sys.exit(main())
