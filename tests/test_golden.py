@@ -8,8 +8,8 @@ digest.
 
 Bit-identity holds on the machine type that wrote the reference: numba compiles for the host CPU and numpy
 dispatches its kernels by CPU features, so a different CPU may round differently and, through the contact and
-puncture thresholds, end up on a different trajectory. The reference records the CPU model and library
-versions; on a machine that differs, the digests are not compared, and the test compares the per-step rewards
+puncture thresholds, end up on a different trajectory. The reference records the CPU model, the CPU numba
+compiles for and the library versions; on a machine that differs, the digests are not compared, and the test compares the per-step rewards
 of the first :data:`PREFIX_STEPS` steps of each case within :data:`PREFIX_RTOL` instead (still a real check of
 the physics and the task layer, before any threshold can branch differently).
 
@@ -31,9 +31,11 @@ from pathlib import Path
 import numpy as np
 import pytest
 
+from suture_gym.configs import ENV_DIR
+
 ROOT = Path(__file__).resolve().parents[1]
 REFERENCE = Path(__file__).resolve().parent / "data" / "golden_trajectories.json"
-CONFIGS = ROOT / "configs" / "envs"
+CONFIGS = ENV_DIR
 #: Steps compared with a tolerance when the reference comes from another machine type.
 PREFIX_STEPS = 40
 #: Relative tolerance of that comparison.
@@ -88,7 +90,7 @@ def run_case(env_id: str, config: str | None, policy: str, seed: int, steps: int
     import gymnasium as gym
 
     import suture_gym.envs  # noqa: F401  (registers the ids)
-    from agents.expert import ExpertPolicy
+    from suture_gym.baselines.expert import ExpertPolicy
 
     kwargs = {} if config is None else {"config": str(CONFIGS / config)}
     env = gym.make(env_id, **kwargs)
@@ -119,6 +121,7 @@ def run_case(env_id: str, config: str | None, policy: str, seed: int, steps: int
 def machine() -> dict:
     """What decides floating-point rounding here: CPU model and the numeric libraries' versions."""
     import llvmlite
+    import llvmlite.binding
     import numba
 
     cpu = platform.processor()
@@ -131,6 +134,9 @@ def machine() -> dict:
         pass
     return {
         "cpu": cpu,
+        # the CPU numba compiles for: a virtual machine's model name ("AMD EPYC") hides the generation, whose
+        # instruction set (AVX-512 or not, FMA) decides the rounding of the compiled kernels
+        "host_cpu": llvmlite.binding.get_host_cpu_name(),
         "machine": platform.machine(),
         "numpy": np.__version__,
         "numba": numba.__version__,
