@@ -46,11 +46,7 @@ from suture_gym.envs.randomization import EpisodeParams, nominal_params
 from suture_gym.envs.readout import coupling_mark, mean_gap, observables, substep_events, thread_through
 from suture_gym.envs.registry import task_class
 from suture_gym.render.scene import RenderFrame
-from suture_gym.sim.anatomy import abdominal_wall, hand, resting_incised
-from suture_gym.sim.incision import Incision, with_wound_contact
-from suture_gym.sim.layers import layered
-from suture_gym.sim.mesh import TetLocator, check_tet_budget
-from suture_gym.sim.mesh_io import SURFACE_FORMATS, read_tet_mesh, tetrahedralize_surface
+from suture_gym.sim.mesh import TetLocator
 from suture_gym.sim.model import Control, Model, State, TissueMaterial
 from suture_gym.sim.needle import (
     NeedleModel,
@@ -67,13 +63,11 @@ from suture_gym.sim.quat import (
 )
 from suture_gym.sim.rod import RodModel
 from suture_gym.sim.scenes import (
-    STANDARD_GRAVITY,
     Scene,
     assemble,
     needle_circle_pose,
-    suturing_pad,
-    two_bar_wound,
 )
+from suture_gym.sim.tissue_scenes import TissueSpec, build_tissue
 from suture_gym.tasks import Observables, PlannedArc, plan_across_incision, plan_stitches
 from suture_gym.tasks.surgeon import circle_grip_target
 
@@ -226,58 +220,17 @@ class Simulation:
             self._builds.move_to_end(key)
         return build
 
-    def _tissue(self, params: EpisodeParams) -> tuple[Scene, np.ndarray, np.ndarray]:
-        """``(tissue Scene, left face (k,), right face (k,))``; the faces are the wound faces' free particles in
-        the upper half of the tissue, or of the incision's faces (the gap a surgeon sees; the bottom rows sit on
-        the rigid base, an incision's faces meet at its bottom)."""
+    def _tissue_spec(self, params: EpisodeParams) -> TissueSpec:
+        """The tissue of the config's scene with the episode's stiffness and wound gap."""
         cfg = self.config
-        t = cfg.tissue
-        material = TissueMaterial(**{**sim_fields(t, TissueMaterial), "youngs_modulus": params.youngs_modulus})
         scene = cfg.scene
-        empty = np.zeros(0, dtype=np.int64)
-        if scene.kind == "pad":
-            built = suturing_pad(scene.size, scene.cells, material, "five", STANDARD_GRAVITY)
-        elif scene.kind == "wound":
-            built = two_bar_wound(bar_size=scene.size, cells=scene.cells, gap=params.gap, material=material,
-                                  scheme="five", base=True, gravity=STANDARD_GRAVITY)
-        else:
-            built = self._anatomy(material, params.gap)
-        if scene.layer_stiffness:
-            materials = [replace(material, youngs_modulus=k * material.youngs_modulus) for k in scene.layer_stiffness]
-            built = layered(built, materials, scene.layer_thickness)
-        if scene.kind == "pad":
-            return built, empty, empty
-        if scene.wound_contact:
-            built = with_wound_contact(built)
-        tissue = built.model.tissue
-        left = built.regions["left_wound_face"]
-        right = built.regions["right_wound_face"]
-        z = tissue.particle_rest_q[:, 2]
-        if scene.kind == "wound":
-            middle = 0.5 * scene.size[2]
-        else:
-            faces = np.concatenate([left, right])
-            middle = 0.5 * (z[faces].min() + z[faces].max())
-        upper = (tissue.particle_inv_mass > 0.0) & (z >= middle)
-        return built, left[upper[left]], right[upper[right]]
-
-    def _anatomy(self, material: TissueMaterial, gap: float) -> Scene:
-        """The tissue of an ``abdominal_wall``, ``hand`` or ``mesh`` scene (one material; layered by the caller)."""
-        scene = self.config.scene
-        depth = {"incision_depth": scene.incision.depth} if scene.incision.depth else {}
-        if scene.kind == "abdominal_wall":
-            return abdominal_wall(layers=(("tissue", math.inf, material),), size=scene.size, cells=scene.cells,
-                                  gap=gap, gravity=STANDARD_GRAVITY, **depth)
-        if scene.kind == "hand":
-            return hand(material, edge_length=scene.cell_size, gap=gap, gravity=STANDARD_GRAVITY, **depth)
-        path = scene.path
-        if path.lower().endswith(SURFACE_FORMATS):
-            mesh = tetrahedralize_surface(path, scene.cell_size, max_tets=scene.max_tets)
-        else:
-            mesh = read_tet_mesh(path)
-            check_tet_budget(mesh.tet_count, f"scene.path = {path!r}", scene.max_tets, "scene.max_tets")
-        incision = Incision(scene.incision.points, depth=scene.incision.depth, gap=gap)
-        return resting_incised(mesh, incision, material, 0.5 * scene.cell_size, STANDARD_GRAVITY)
+        material = TissueMaterial(**{**sim_fields(cfg.tissue, TissueMaterial),
+                                     "youngs_modulus": params.youngs_modulus})
+        return TissueSpec(kind=scene.kind, material=material, size=scene.size, cells=scene.cells,
+                          cell_size=scene.cell_size, gap=params.gap, layer_thickness=scene.layer_thickness,
+                          layer_stiffness=scene.layer_stiffness, wound_contact=scene.wound_contact,
+                          path=scene.path, max_tets=scene.max_tets, incision_points=scene.incision.points,
+                          incision_depth=scene.incision.depth)
 
     def _plan(self, tissue_scene: Scene, gap: float) -> tuple[PlannedArc, ...]:
         """The planned arcs: from the config's geometry for a pad or two bars, on the built tissue across its
@@ -294,7 +247,7 @@ class Simulation:
 
     def _make_build(self, params: EpisodeParams) -> _Build:
         cfg = self.config
-        tissue_scene, left, right = self._tissue(params)
+        tissue_scene, left, right = build_tissue(self._tissue_spec(params))
         arcs = self._plan(tissue_scene, params.gap)
         coupling_params = cfg.coupling.params(puncture_force=params.puncture_force)
         needle = self.needle_model
