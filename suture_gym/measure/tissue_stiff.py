@@ -523,7 +523,7 @@ def _cantilever_period_result(name: str, rate: dict) -> CheckResult:
 # --- The environments with stiff tissue ---------------------------------------------------------------------
 
 #: Sweeps per substep with the implicit tissue in a coupled scene: the elastic solve and the coupling rows
-#: alternate twice (one sweep lets a 1 N tip fall through 100 kPa tissue, docs/tissue_integrator.md); the
+#: alternate twice (one sweep lets a 1 N tip fall through 100 kPa tissue, docs/notes/tissue_integrator.md); the
 #: environments' default (``solver.iterations``).
 STIFF_ENV_SWEEPS = 2
 #: Young's modulus of the v0 environments (Pa), which the ``env_*_stiff`` benchmarks time the defaults against:
@@ -583,7 +583,7 @@ def _stiff_env(env_id: str, physics: str):
 ENV_RATE_ROUNDS = 3
 #: Env and action seeds of a round's workload, :data:`~suture_gym.measure.envs.TIMED_STEPS` random steps each. More
 #: than one: the solver's work follows the trajectory the seed draws, and at 300 kPa one seed's is luck (on
-#: WoundClosure-v2, seeds 0-5 of the same code took 1.08-1.94 CHOLMOD solves a substep; docs/tissue_integrator.md).
+#: WoundClosure-v2, seeds 0-5 of the same code took 1.08-1.94 CHOLMOD solves a substep; docs/notes/tissue_integrator.md).
 ENV_RATE_SEEDS = (0, 1, 2)
 
 
