@@ -1,4 +1,4 @@
-"""Evaluate a policy: random, the scripted expert, or a saved model (docs/design.md section 8).
+"""Evaluate a policy: random, the scripted expert, or a saved model (docs/usage.md, "Training and evaluating").
 
 Usage::
 
