@@ -9,16 +9,19 @@ PY     := $(BIN)/python
 export NUMBA_CACHE_DIR ?= $(CURDIR)/.numba_cache
 export NUMBA_NUM_THREADS ?= 2
 export OMP_NUM_THREADS ?= 2
+# MkDocs plugins print a banner about MkDocs 2 on every build; these silence it.
+export DISABLE_MKDOCS_2_WARNING ?= true
+export NO_MKDOCS_2_WARNING ?= 1
 
-.PHONY: setup setup-train run demo test validate bench lint clean
+.PHONY: setup setup-train run demo test validate bench lint docs clean
 
 $(PY):
 	$(PYTHON) -m venv $(VENV)
 	$(PY) -m pip install --quiet --upgrade pip
 
-# Core package + test/render/viewer extras. Re-run when pyproject.toml changes.
+# Core package + test/render/viewer/docs extras. Re-run when pyproject.toml changes.
 $(VENV)/.core: pyproject.toml | $(PY)
-	$(PY) -m pip install --quiet -e ".[dev,render,viewer]"
+	$(PY) -m pip install --quiet -e ".[dev,render,viewer,docs]"
 	touch $@
 
 # RL extras: CPU torch first, then SB3 and friends.
@@ -51,8 +54,12 @@ validate: setup
 bench: setup
 	$(PY) scripts/bench.py
 
+## The documentation site (MkDocs, warnings as errors) -> site/.
+docs: setup
+	$(BIN)/mkdocs build --strict
+
 lint: setup
 	$(BIN)/ruff check suture_gym scripts tests
 
 clean:
-	rm -rf $(VENV) .numba_cache .pytest_cache .ruff_cache out
+	rm -rf $(VENV) .numba_cache .pytest_cache .ruff_cache out site

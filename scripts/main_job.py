@@ -8,7 +8,7 @@ Steps:
    ``<out>/dagger_NeedleInsert_s<seed>/``); ``--algo ppo`` trains PPO warm-started by behaviour cloning
    (``configs/agents/ppo.yml``) instead;
 2. evaluate the trained model on ``--episodes`` seeded episodes of the same env config, and on the same seeds
-   the committed models of the same algorithm (``models/NeedleInsert/seed*/``, the README's table), the
+   the committed models of the same algorithm (``models/NeedleInsert/seed*/``, docs/results.md), the
    scripted expert and random actions (``suture_gym.baselines.evaluation.evaluate``) -> ``<run>/evaluation.json``; the
    committed models' own 100-episode figures (their ``evaluation.json``) are printed beside;
 3. the learning curve -> ``<run>/learning_curve.png`` (written by the training);
@@ -50,7 +50,7 @@ from suture_gym.baselines.training import train  # noqa: E402
 from suture_gym.render import write_video  # noqa: E402
 
 ENV_ID = "SutureGym/NeedleInsert-v2"
-#: The committed models of ``ENV_ID`` (README's table), one directory per training seed.
+#: The committed models of ``ENV_ID`` (docs/results.md), one directory per training seed.
 COMMITTED = ROOT / "models" / "NeedleInsert"
 #: Env steps per video frame (the default 5 ms env step gives 25 fps at real time).
 VIDEO_EVERY = 8

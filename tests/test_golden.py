@@ -9,9 +9,9 @@ digest.
 Bit-identity holds on the machine type that wrote the reference: numba compiles for the host CPU and numpy
 dispatches its kernels by CPU features, so a different CPU may round differently and, through the contact and
 puncture thresholds, end up on a different trajectory. The reference records the CPU model, the CPU numba
-compiles for and the library versions; on a machine that differs, the digests are not compared, and the test compares the per-step rewards
-of the first :data:`PREFIX_STEPS` steps of each case within :data:`PREFIX_RTOL` instead (still a real check of
-the physics and the task layer, before any threshold can branch differently).
+compiles for and the library versions; on a machine that differs, the digests are not compared, and the test
+compares the per-step rewards of the first :data:`PREFIX_STEPS` steps of each case within :data:`PREFIX_RTOL`
+instead (still a real check of the physics and the task layer, before any threshold can branch differently).
 
 Write the reference (only when a change of behaviour is intended, and say so in the commit):
 ``python tests/test_golden.py --write``.

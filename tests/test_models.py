@@ -1,4 +1,4 @@
-"""The trained models committed under models/ (README results): each loads with its run config and
+"""The trained models committed under models/ (docs/results.md): each loads with its run config and
 normalisation statistics and drives a short episode of the env it was trained on."""
 
 import json

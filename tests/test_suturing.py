@@ -98,7 +98,7 @@ def test_a_stopper_knot_stops_the_thread_at_the_first_entry_and_the_pull_closes_
 
 def test_the_fuzzed_extreme_episode_on_the_paper_suture_throw_does_not_diverge(monkeypatch):
     """The fuzzer's reproducer (scripts/fuzz.py) that diverged when a thread row on a rigid face was made to give
-    way at the tear force (tried and reverted, docs/design.md, "Departures from the brief"): held at that bound,
+    way at the tear force (tried and reverted, docs/notes/coupling.md): held at that bound,
     the nearly massless thread shot through the bar, a node 35 mm in one iteration of its solve."""
     from conftest import assert_fuzz_event_does_not_diverge
 

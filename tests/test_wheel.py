@@ -11,6 +11,7 @@ from __future__ import annotations
 
 import json
 import os
+import shutil
 import subprocess
 import sys
 import sysconfig
@@ -60,8 +61,16 @@ def run(command: list[str], cwd: Path, env: dict, timeout: float = 900) -> subpr
 def installed(tmp_path_factory):
     """``(python, suture-gym, work folder, environment)`` of a fresh venv with the wheel installed."""
     build = tmp_path_factory.mktemp("wheel")
+    source = tmp_path_factory.mktemp("source")
+    # the files git knows of, so that no build folder or cache of the checkout can slip into the wheel
+    listed = run(["git", "ls-files", "--cached", "--others", "--exclude-standard", "-z"], cwd=ROOT,
+                 env=os.environ.copy()).stdout.split("\0")
+    for name in filter(None, listed):
+        if (ROOT / name).is_file():
+            (source / name).parent.mkdir(parents=True, exist_ok=True)
+            shutil.copy2(ROOT / name, source / name)
     run([sys.executable, "-m", "pip", "wheel", "--no-deps", "--no-build-isolation", "-q", "-w", str(build),
-         str(ROOT)], cwd=build, env=os.environ.copy())
+         str(source)], cwd=build, env=os.environ.copy())
     (wheel,) = build.glob("suture_gym-*.whl")
     venv = tmp_path_factory.mktemp("venv")
     run([sys.executable, "-m", "venv", "--without-pip", str(venv)], cwd=build, env=os.environ.copy())

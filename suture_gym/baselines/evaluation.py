@@ -1,6 +1,6 @@
 """Evaluate a policy on a Gymnasium env id: random, the scripted expert, or a saved SB3 model.
 
-The summary follows the measurement contract of docs/design.md section 8: ``success_rate, mean_return,
+The summary's fields (docs/usage.md, "Training and evaluating baselines"): ``success_rate, mean_return,
 mean_episode_length, mean_tip_force, mean_final_gap`` (plus spreads and the per-episode records).
 ``tip_force`` (N) and ``wound_gap`` (m) are read from the env's ``info``; envs that do not report them give
 ``None``.

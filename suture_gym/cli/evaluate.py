@@ -1,4 +1,4 @@
-"""Evaluate a policy: random, the scripted expert, or a saved model (docs/design.md section 8).
+"""Evaluate a policy: random, the scripted expert, or a saved model (docs/usage.md, "Training and evaluating").
 
 Usage::
 
@@ -34,7 +34,8 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--episodes", type=int, default=20)
     parser.add_argument("--seed", type=int, default=0, help="episode k uses env seed seed + k")
     parser.add_argument("--config", default=None,
-                        help="env config overrides, a configs/envs/*.yaml path (default: a model's training config)")
+                        help="env config overrides: a shipped config's name or a YAML path (default: a model's "
+                             "training config)")
     parser.add_argument("--vecnormalize", default=None, metavar="PATH",
                         help="VecNormalize statistics (.pkl) of a saved model (default: those saved beside it; "
                              "a warning when there are none)")

@@ -1,6 +1,6 @@
 """Record a video of each task, rendered by the env (``render_mode="rgb_array"``), driven by the scripted
-expert (:class:`suture_gym.baselines.expert.ExpertPolicy`, the policy whose success rates the README reports): the
-needle turned about its own centre along the planned arcs, then pulled to draw the thread through.
+expert (:class:`suture_gym.baselines.expert.ExpertPolicy`, the policy whose success rates docs/results.md
+reports): the needle turned about its own centre along the planned arcs, then pulled to draw the thread through.
 
 Usage::
 

@@ -1,4 +1,4 @@
-"""Train a Stable-Baselines3 baseline on a SutureGym task (rl-zoo-style configs in configs/agents/).
+"""Train a Stable-Baselines3 baseline on a SutureGym task (rl-zoo-style configs in suture_gym/configs/agents/).
 
 Usage::
 
@@ -26,7 +26,8 @@ from suture_gym.baselines.training import train
 def main(argv: list[str] | None = None) -> int:
     parser = argparse.ArgumentParser(prog="suture-gym train", description=__doc__,
                                      formatter_class=argparse.RawDescriptionHelpFormatter)
-    parser.add_argument("--algo", default="ppo", choices=algorithms(), help="algorithm (a configs/agents/*.yml)")
+    parser.add_argument("--algo", default="ppo", choices=algorithms(),
+                        help="algorithm (suture_gym/configs/agents/*.yml)")
     parser.add_argument("--env", default="SutureGym/NeedleInsert-v2", help="Gymnasium env id")
     parser.add_argument("--seed", type=int, default=0)
     parser.add_argument("--n-timesteps", type=int, default=None, help="override the config's total env steps")

@@ -108,7 +108,7 @@ class SutureEnv(gym.Env):
         task: a registered task name (``"needle_insert"``, ``"suture_throw"``, ``"wound_closure"``, ...);
             default the class's :attr:`TASK`.
         config: None (the task's defaults), an :class:`~suture_gym.envs.config.EnvConfig`, a nested mapping of
-            overrides or the path of a YAML file of overrides (``configs/envs/*.yaml``).
+            overrides or the path of a YAML file of overrides (a shipped one by name, :mod:`suture_gym.configs`).
         render_mode: None, ``"rgb_array"`` (images) or ``"human"`` (live view in the browser, needs viser).
         action_mode: shortcut overriding ``config.action.mode`` (``"wrench"`` or ``"pose_delta"``).
     """

@@ -119,7 +119,8 @@ def _start_lines(task: type[Task], config) -> list[str]:
                      f"tissue and settled for {PHASE_SETTLE_STEPS} env steps; the needle's start offsets act only on "
                      "the approach.")
     lines.append("Domain randomisation (``randomization``) samples the tissue stiffness, puncture force, wound gap "
-                 "and the needle's start pose at every reset; all off by default.")
+                 "and the needle's start pose at every reset, from the env's seed; ``randomization.enabled: false`` "
+                 "gives the nominal episode.")
     return lines
 
 
@@ -145,8 +146,9 @@ def _argument_lines(task: type[Task]) -> list[str]:
     return [
         "``gym.make(id, config=None, render_mode=None, action_mode=None)``:",
         "* ``config``: None (the task's defaults), an ``EnvConfig``, a nested mapping of overrides or the path of "
-        "a YAML file of them (``configs/envs/*.yaml``); unknown keys and bad values raise ValueError naming the "
-        f"dotted key. The task's defaults: ``default_config({task.NAME!r})``.",
+        "a YAML file of them, or the name of a shipped one (``suture_gym/configs/envs/<name>.yaml``); unknown "
+        "keys and bad values raise ValueError naming the dotted key. The task's defaults: "
+        f"``default_config({task.NAME!r})``.",
         "* ``render_mode``: None, ``'rgb_array'`` (images) or ``'human'`` (a live 3D view in the browser, viser; "
         "``render.viewer_host``/``viewer_port``).",
         "* ``action_mode``: ``'wrench'`` or ``'pose_delta'``, overriding ``action.mode``.",

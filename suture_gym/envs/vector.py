@@ -22,7 +22,7 @@ with the worker's traceback as its cause.
 
 Why processes and not threads: a step is Python (the task, the solver's orchestration, the sparse solves)
 around numba kernels, so threads would scale only as far as the GIL is released, while processes do not depend
-on where the time goes (measurements in docs/design.md, section 6). ``scripts/bench.py`` ``vector_env``
+on where the time goes (measurements in docs/notes/environments.md). ``scripts/bench.py`` ``vector_env``
 measures the processes' scaling.
 """
 

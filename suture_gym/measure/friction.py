@@ -1,4 +1,4 @@
-"""Friction of the thread along its path through the tissue (issue 14).
+"""Friction of the thread along its path through the tissue.
 
 The model (:class:`~suture_gym.sim.coupling.CouplingParams` ``suture_axial_friction`` ``f``, N/m): kinetic,
 Coulomb-like friction per unit length of embedded thread, independent of speed and of the thread's tension

@@ -1,4 +1,4 @@
-"""Needle insertion force checks (issue 14): the force a position-controlled holder feels while it drives a
+"""Needle insertion force checks: the force a position-controlled holder feels while it drives a
 semicircle needle through a realistic pad along its own arc, and how the force before puncture depends on the
 mesh.
 

@@ -1,4 +1,4 @@
-"""The rigid base as a contact (issue 14): tissue crushed against its base by the needle stays above it.
+"""The rigid base as a contact: tissue crushed against its base by the needle stays above it.
 
 A one-cell-thick pad of the environments' cells on its base, the needle tip pushed straight down into it with
 5 N and a puncture threshold above that (so no puncture relieves the load), at the environments' substep, sweeps

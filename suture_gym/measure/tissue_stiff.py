@@ -1,4 +1,4 @@
-"""Stiff-tissue checks (issue 13): the implicit integrators at the environments' own rate, against
+"""Stiff-tissue checks: the implicit integrators at the environments' own rate, against
 finite-element references on the same meshes, and the stiff-tissue benchmarks.
 
 Every run steps at the environments' substep ``dt`` with their substeps per env step and sweeps per substep
@@ -523,11 +523,11 @@ def _cantilever_period_result(name: str, rate: dict) -> CheckResult:
 # --- The environments with stiff tissue ---------------------------------------------------------------------
 
 #: Sweeps per substep with the implicit tissue in a coupled scene: the elastic solve and the coupling rows
-#: alternate twice (one sweep lets a 1 N tip fall through 100 kPa tissue, docs/tissue_integrator.md); the
+#: alternate twice (one sweep lets a 1 N tip fall through 100 kPa tissue, docs/notes/tissue_integrator.md); the
 #: environments' default (``solver.iterations``).
 STIFF_ENV_SWEEPS = 2
 #: Young's modulus of the v0 environments (Pa), which the ``env_*_stiff`` benchmarks time the defaults against:
-#: the cost target of issue 13 is an env step no dearer than v0's at 3 kPa.
+#: the cost target is an env step no dearer than v0's at 3 kPa.
 V0_YOUNGS = 3.0e3
 
 
@@ -536,7 +536,7 @@ V0_YOUNGS = 3.0e3
 _SCALED_COUPLING = ("puncture_force", "tear_force", "needle_axial_friction")
 _SCALED_ACTION = ("max_force", "max_torque", "coupling_linear_stiffness", "coupling_linear_damping",
                      "coupling_angular_stiffness", "coupling_angular_damping")  # fmt: skip
-#: The insertion force model's forces (issue 14), scaled with the tissue where the model stays on.
+#: The insertion force model's forces, scaled with the tissue where the model stays on.
 _INSERTION_FORCES = ("exit_puncture_force", "cutting_force")
 #: The physics an ``env_*_stiff`` benchmark times: the registered default, the same integrator and sweeps with
 #: the tissue at :data:`V0_YOUNGS` (stiffness the only change), and the v0 physics.
@@ -583,7 +583,8 @@ def _stiff_env(env_id: str, physics: str):
 ENV_RATE_ROUNDS = 3
 #: Env and action seeds of a round's workload, :data:`~suture_gym.measure.envs.TIMED_STEPS` random steps each. More
 #: than one: the solver's work follows the trajectory the seed draws, and at 300 kPa one seed's is luck (on
-#: WoundClosure-v2, seeds 0-5 of the same code took 1.08-1.94 CHOLMOD solves a substep; docs/tissue_integrator.md).
+#: WoundClosure-v2, seeds 0-5 of the same code took 1.08-1.94 CHOLMOD solves a substep;
+#: docs/notes/tissue_integrator.md).
 ENV_RATE_SEEDS = (0, 1, 2)
 
 

@@ -221,30 +221,17 @@ WOUND_KINDS: tuple[str, ...] = ("wound", *ANATOMY_KINDS)
 
 #: The built-in tasks' version history (:attr:`Task.VERSION_HISTORY`): what they share.
 BUILTIN_VERSION_HISTORY = (
-    "v2 (issue 15): randomised by default (tissue stiffness x0.7-1.3, puncture force x0.8-1.25, wound gap "
-    "x0.9-1.1, start pose +-0.5 mm and +-0.05 rad per axis; ``randomization.enabled: false`` for the nominal "
-    "episode), and the observation scaled to O(1) with finite bounds (lengths in cm, forces and torques in "
-    "units of the action's limits; ``observation.scaled: false`` for raw SI values). The observation's size "
-    "never depends on the randomisation. Also (issue 19): the tissue's quasi-Newton solve iterates on after a "
-    "step of over a quarter cell until converged (a full-action dent at the pad's edge diverged), and a start "
-    "phase of a randomised episode is the nominal start carried over to its tissue and settled.",
-    "v1 (issues 13, 14): real-scale physics. Tissue 300 kPa (a silicone suture-training pad; was 3 kPa) on the "
-    "implicit quasi-Newton integrator with two sweeps per substep (was XPBD, which at the env's time step gave "
-    "the wrong Poisson's ratio and softness); every force x100: puncture 0.5 N, tear 10 N, actions up to 5 N "
-    "and 0.02 N m per axis, holder 2 kg; the insertion force model on (exit peak 0.25 N, cutting 0.1 N, a 1 mm "
-    "tip patch); thread nodes in a path keep their own inertia along it. Also (issue 19): actions outside the "
-    "box are clipped to it, a divergence ends the episode as a failure (terminated, failure penalty), and a "
-    "step after the env ended the episode raises.",
+    "v2: randomised by default (tissue stiffness x0.7-1.3, puncture force x0.8-1.25, wound gap x0.9-1.1, start "
+    "pose +-0.5 mm and +-0.05 rad; ``randomization.enabled: false`` for the nominal episode) and the observation "
+    "scaled to O(1) with finite bounds (``observation.scaled: false`` for raw SI values).",
+    "v1: real-scale physics: 300 kPa tissue on the implicit integrator and forces in newtons (puncture 0.5 N, "
+    "tear 10 N, actions up to 5 N and 0.02 N m), the insertion force model on; actions outside the box clipped, "
+    "a divergence a failure, a step after the end refused.",
     "v0: 3 kPa XPBD tissue and millinewton forces (puncture 5 mN, actions up to 0.05 N and 2e-4 N m).",
 )
 #: The thread tasks' version history: :data:`BUILTIN_VERSION_HISTORY` with the thread's own changes added.
 THREAD_VERSION_HISTORY = (
-    BUILTIN_VERSION_HISTORY[0] + " Also (issue 14): the base under the wound is the thread's obstacle (with "
-    "Coulomb friction 0.3), and the bars' bottom faces, which rest on it, no longer give the thread contact "
-    "rows. In v1 the slack of the thread crossing the wound fell through the gap below the bars and hooked on "
-    "their bottom edges, and the scripted expert tore the tissue in some randomised SutureThrow episodes; and a "
-    "strand node past the edge of a rigid (clamped) face is pushed along the distance's gradient, not the face's "
-    "normal, which snagged the thread sliding over a bar's clamped end.",
+    BUILTIN_VERSION_HISTORY[0] + " The base under the wound is an obstacle of the thread (Coulomb friction 0.3).",
 ) + BUILTIN_VERSION_HISTORY[1:]
 
 
@@ -272,7 +259,7 @@ class Task(ABC):
     GOAL_ENV_ID: ClassVar[str | None] = None
     #: Time limit, env steps.
     MAX_EPISODE_STEPS: ClassVar[int] = 0
-    #: The ids' version history for the env docs, newest first: one line per version, what changed and why.
+    #: The ids' version history for the env docs, newest first: one short line per version, what changed for a user.
     #: Bump the ids' version (and add a line) whenever a change alters what an episode does.
     VERSION_HISTORY: ClassVar[tuple[str, ...]] = ()
     #: The task's config defaults: nested overrides of the typed defaults of

@@ -354,7 +354,8 @@ def main(argv: list[str] | None = None) -> int:
                                      description="Live 3D view of a SutureGym env in the browser (viser): policy "
                                                  "playback, teleoperation, demonstrations as Minari datasets.")
     parser.add_argument("--env", required=True, help="env id, e.g. SutureGym/NeedleInsert-v2")
-    parser.add_argument("--config", default=None, help="env config YAML (configs/envs/*.yaml)")
+    parser.add_argument("--config", default=None,
+                        help="env config: a shipped config's name (suture_gym/configs/envs/) or a YAML path")
     parser.add_argument("--policy", default=TELEOP, help="teleop (default), expert, random or a saved model .zip")
     parser.add_argument("--action-mode", choices=("wrench", "pose_delta"), default=None,
                         help="override the config's action.mode")
