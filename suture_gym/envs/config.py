@@ -338,7 +338,7 @@ class SolverConfig(Solver):
     of ``dt``."""
 
     iterations: int = 2  # sweeps per substep: the implicit tissue solve and the coupling rows alternate twice
-    tissue_integrator: str = "quasi_newton"  # implicit Euler: true to the material at 1 ms (issue 13)
+    tissue_integrator: str = "quasi_newton"  # implicit Euler: true to the material at 1 ms
     max_speed: float = 20.0  # m/s, divergence threshold
     dt: float = 1.0e-3  # s, substep
     substeps: int = 5  # substeps per env step

@@ -24,7 +24,7 @@ from suture_gym.sim.quat import (
 )
 
 # The 3 x 3 products below are written in scalars: numba's ``@`` on such small arrays calls BLAS, whose per-call
-# cost was a third of the needle's path rows' projection on the hand's scene (92 -> 62 us a sweep, issue 17).
+# cost would otherwise dominate the needle's path rows' projection.
 
 
 @njit(cache=True, inline="always")

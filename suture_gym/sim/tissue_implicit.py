@@ -79,8 +79,8 @@ LARGE_STEP_FRACTION = 0.25
 #: Convergence test of a quasi-Newton solve after a large step, m/s: it goes on while its next step would still
 #: change some particle's velocity (the step over the substep ``h``) by more than this. Stopping the solve short
 #: of it hands the coupling rows and the next substep a velocity error; under a dent of most of a cell that error
-#: grew from substep to substep (issue 19: a needle pressed 5 N into the pad's edge by random in-box actions, a
-#: next step of 0.15 m/s, then 1-2 m/s, then a particle thrown 17 mm in one substep).
+#: grew from substep to substep (a needle pressed 5 N into the pad's edge: a next step of 0.15 m/s, then 1-2 m/s,
+#: then a particle thrown 17 mm in one substep).
 CONVERGED_SPEED = 0.1
 #: Next step (as a speed over ``h``, m/s) above which the energy's estimate of it (:func:`next_step_estimate`) says
 #: a step the solve did not test may have left it unconverged: a first step of the substep (a sweep before the last,
