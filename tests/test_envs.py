@@ -554,11 +554,18 @@ def test_record_video_script_films_the_expert(tmp_path):
 
     script = Path(__file__).resolve().parents[1] / "scripts" / "record_video.py"
     done = subprocess.run([sys.executable, str(script), "--env", "SutureGym/NeedleInsert-v2", "--out", str(tmp_path),
-                           "--seconds", "0.1", "--every", "5"], capture_output=True, text=True, check=True, timeout=600)
+                           "--seconds", "0.1", "--every", "5", "--speed", "0.5", "--size", "160x120"],
+                          capture_output=True, text=True, check=True, timeout=600)
     line = json.loads(done.stdout.strip().splitlines()[-1])
     video = tmp_path / "needle_insert.mp4"
     assert line["path"] == str(video) and video.stat().st_size == line["bytes"] > 0
-    assert line["steps"] == 20 and line["frames"] == 4 + 12  # a frame every 5 of 20 steps, then the last held
+    assert line["fps"] == pytest.approx(20.0)  # half real time: 0.5 / (5 steps x 5 ms)
+    assert line["steps"] == 20 and line["frames"] == 4 + 20  # a frame every 5 of 20 steps, then 1 s of the last
+    import imageio.v3 as iio
+
+    assert iio.imread(video, index=0).shape == (120, 160, 3)
+    bad = subprocess.run([sys.executable, str(script), "--size", "big"], capture_output=True, text=True, timeout=600)
+    assert bad.returncode == 2 and "'big'" in bad.stderr
     assert line["success"] is False  # 0.1 s is far too short to stitch
 
 

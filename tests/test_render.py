@@ -467,7 +467,7 @@ def test_font_glyphs_and_gauge_text():
     np.testing.assert_array_equal(text_glyph_indices("~"), text_glyph_indices("?"))
 
     q, tris = _floor()
-    renderer = SceneRenderer(96, 96, camera=_top_camera(size=96))
+    renderer = SceneRenderer(128, 128, camera=_top_camera(size=128))
     image = renderer.render(RenderFrame(q, tris, tip_force=0.83, force_threshold=1.0))
     x, y, w, h = renderer.gauge_layout("0.83 N")["text"]
     white = (image[y : y + h, x : x + w] == 255).all(axis=2)
@@ -483,6 +483,35 @@ def test_font_glyphs_and_gauge_text():
     image = renderer.render(RenderFrame(q, tris, tip_force=float("nan"), caption="step 3"))
     x, y, w, h = renderer.gauge_layout("--- N")["text"]
     np.testing.assert_array_equal((image[y : y + h, x : x + w] == 255).all(axis=2), text_bitmap("--- N"))
+    x, y, w, h = renderer.gauge_layout("--- N")["label"]
+    np.testing.assert_array_equal((image[y : y + h, x : x + w] == 255).all(axis=2)[:, : text_bitmap("TIP").shape[1]],
+                                  text_bitmap("TIP"))
+
+
+def test_haptic_gauge_shows_the_reaction_force_against_its_span_above_the_tip_gauge():
+    q, tris = _floor()
+    renderer = SceneRenderer(128, 128, camera=_top_camera(size=128))
+    image = renderer.render(RenderFrame(q, tris, tip_force=0.2, force_threshold=0.5, haptic_force=1.5, haptic_span=5.0))
+    tip, haptic = renderer.gauge_layout("0.20 N", 0), renderer.gauge_layout("1.50 N", 1)
+    assert haptic["panel"][1] + haptic["panel"][3] <= tip["panel"][1]  # stacked, not overlapping
+    assert haptic["bar"][0] == tip["bar"][0] and haptic["bar"][2] == tip["bar"][2]  # the bars line up
+    for lay, text, label in ((tip, "0.20 N", "TIP"), (haptic, "1.50 N", "HAPTIC")):
+        x, y, w, h = lay["text"]
+        np.testing.assert_array_equal((image[y : y + h, x : x + w] == 255).all(axis=2), text_bitmap(text))
+        x, y, _, h = lay["label"]
+        w = text_bitmap(label).shape[1]
+        np.testing.assert_array_equal((image[y : y + h, x : x + w] == 255).all(axis=2), text_bitmap(label))
+    bx, by, bw, bh = haptic["bar"]
+    filled = round(1.5 / 5.0 * bw)
+    assert not (image[by + bh // 2, bx + filled - 2] == [70, 70, 70]).all()  # filled to 1.5 / 5 of the bar
+    np.testing.assert_array_equal(image[by + bh // 2, bx + filled + 1], [70, 70, 70])
+    over = renderer.render(RenderFrame(q, tris, haptic_force=9.0, haptic_span=5.0))
+    lay = renderer.gauge_layout("9.00 N", 0)  # alone, the haptic gauge takes the bottom row
+    bx, by, bw, bh = lay["bar"]
+    start, end = over[by + bh // 2, bx + 1].astype(int), over[by + bh // 2, bx + bw - 2].astype(int)
+    assert start[1] > start[0] + 80 and end[0] > 200 and end[1] < 120  # filled to the end: green, then red
+    with pytest.raises(ValueError, match="haptic_span"):
+        renderer.render(RenderFrame(q, tris, haptic_force=1.0, haptic_span=0.0))
 
 
 # ------------------------------------------------------------------------------------------ robustness

@@ -486,5 +486,13 @@ class Simulation:
             marker_radius=3.0e-4,
             tip_force=float(state.coupling.tip_force) if math.isfinite(state.coupling.tip_force) else 0.0,
             force_threshold=(self.params or nominal_params(self.config)).puncture_force,
+            haptic_force=_finite_norm(state.needle_reaction[:3]),
+            haptic_span=self.config.action.max_force,
             caption=caption,
         )
+
+
+def _finite_norm(vector: np.ndarray) -> float:
+    """Euclidean norm of ``vector``, or 0.0 when it is not finite (a diverged step's reaction)."""
+    norm = float(np.linalg.norm(vector))
+    return norm if math.isfinite(norm) else 0.0

@@ -127,8 +127,12 @@ class RenderFrame:
         marker_color: optional (P,3) RGB; default alternates the style's entry and exit colours.
         marker_radius: float or (P,) float, m.
         marker_on_top: bool or (P,) bool; True draws the marker over everything (no depth test).
-        tip_force: optional float, N. Shown by the force gauge when given.
-        force_threshold: float, N > 0. Puncture threshold, the gauge's tick; the bar spans 1.5 times it.
+        tip_force: optional float, N. The needle tip's contact force, shown by the ``TIP`` gauge (bottom left)
+            when given.
+        force_threshold: float, N > 0. Puncture threshold, the ``TIP`` gauge's tick; the bar spans 1.5 times it.
+        haptic_force: optional float, N. Magnitude of the reaction force on the instrument (what a haptic device
+            renders to the hand), shown by the ``HAPTIC`` gauge above the ``TIP`` gauge when given.
+        haptic_span: float, N > 0. Full scale of the ``HAPTIC`` gauge (the env's ``action.max_force``).
         caption: text drawn top left (digits, A-Z, ``.,:-+=/%()_!?``; lower case is drawn as upper case).
 
     Non-finite positions are not an error: the primitives that use them are skipped.
@@ -148,6 +152,8 @@ class RenderFrame:
     marker_on_top: bool | np.ndarray = False
     tip_force: float | None = None
     force_threshold: float = 1.0
+    haptic_force: float | None = None
+    haptic_span: float = 5.0
     caption: str = ""
 
 
@@ -362,6 +368,9 @@ class SceneRenderer:
         threshold = float(frame.force_threshold)
         if not (math.isfinite(threshold) and threshold > 0.0):
             raise ValueError(f"force_threshold must be a finite force > 0 N, got {frame.force_threshold!r}")
+        span = float(frame.haptic_span)
+        if not (math.isfinite(span) and span > 0.0):
+            raise ValueError(f"haptic_span must be a finite force > 0 N, got {frame.haptic_span!r}")
         if not isinstance(frame.caption, str):
             raise ValueError(f"caption must be a str, got {type(frame.caption).__name__}")
 
@@ -448,20 +457,26 @@ class SceneRenderer:
         """Pixel size of one font cell: 1 up to about 384 px images, then growing with the image."""
         return max(1, round(min(self.width, self.height) / 256))
 
-    def gauge_layout(self, text: str) -> dict[str, tuple[int, int, int, int]]:
-        """Rectangles ``(x, y, width, height)`` in output pixels of the gauge's ``panel``, ``bar`` and ``text``
-        (bottom left of the image) when it prints ``text``."""
+    def gauge_layout(self, text: str, row: int = 0) -> dict[str, tuple[int, int, int, int]]:
+        """Rectangles ``(x, y, width, height)`` in output pixels of a gauge's ``panel``, ``label``, ``bar`` and
+        ``text`` (the value it prints, ``text``). Gauges stack up from the bottom left of the image: ``row`` 0 is
+        the ``TIP`` gauge, row 1 the ``HAPTIC`` gauge. Every row's label column is as wide as the longest label,
+        so the bars line up."""
         s = self.text_scale
         margin, pad = 4 * s, 3 * s
         text_w, text_h = text_size(text, s)
-        bar_w, bar_h = max(round(0.3 * self.width), 12 * s), text_h
-        panel_w = pad + bar_w + 4 * s + text_w + pad
+        label_w, _ = text_size(max(_GAUGE_LABELS, key=len), s)
+        fixed_w = pad + label_w + 4 * s + 4 * s + text_w + pad
+        bar_w, bar_h = max(min(round(0.3 * self.width), self.width - 2 * margin - fixed_w), 12 * s), text_h
+        panel_w = fixed_w + bar_w
         panel_h = pad + bar_h + pad
-        px, py = margin, self.height - margin - panel_h
+        px, py = margin, self.height - margin - panel_h - row * (panel_h + s)
+        bar_x = px + pad + label_w + 4 * s
         return {
             "panel": (px, py, panel_w, panel_h),
-            "bar": (px + pad, py + pad, bar_w, bar_h),
-            "text": (px + pad + bar_w + 4 * s, py + pad, text_w, text_h),
+            "label": (px + pad, py + pad, label_w, text_h),
+            "bar": (bar_x, py + pad, bar_w, bar_h),
+            "text": (bar_x + bar_w + 4 * s, py + pad, text_w, text_h),
         }
 
     def _draw_overlays(self, frame: RenderFrame, threshold: float, out: np.ndarray) -> None:
@@ -473,26 +488,32 @@ class SceneRenderer:
             pad = 3 * s
             blend_rect(2 * s, 2 * s, 2 * s + text_w + 2 * pad, 2 * s + text_h + 2 * pad, black, 0.55, out)
             draw_text(text_glyph_indices(frame.caption), FONT_GLYPHS, 2 * s + pad, 2 * s + pad, s, white, out)
-        if frame.tip_force is None:
-            return
-        force = float(frame.tip_force)
-        text = f"{force:.2f} N" if math.isfinite(force) else "--- N"
-        lay = self.gauge_layout(text)
-        x, y, w, h = lay["panel"]
-        blend_rect(x, y, x + w, y + h, black, 0.55, out)
-        x, y, w, h = lay["bar"]
-        span = _GAUGE_SPAN * threshold
-        fill = min(max(force / span, 0.0), 1.0) if math.isfinite(force) else math.nan
-        draw_gauge_bar(
-            x, y, w, h, fill, 1.0 / _GAUGE_SPAN, _RAMP_AT, _RAMP_COLOR, _EMPTY_COLOR, white, max(s, 2), 2 * s, out
-        )
-        x, y, _, _ = lay["text"]
-        draw_text(text_glyph_indices(text), FONT_GLYPHS, x, y, s, white, out)
+        # (label, force N, full scale N, tick as a fraction of the bar): tip against the puncture threshold,
+        # haptic against the largest commanded force.
+        gauges = []
+        if frame.tip_force is not None:
+            gauges.append(("TIP", float(frame.tip_force), _GAUGE_SPAN * threshold, 1.0 / _GAUGE_SPAN))
+        if frame.haptic_force is not None:
+            gauges.append(("HAPTIC", float(frame.haptic_force), float(frame.haptic_span), 1.0))
+        for row, (label, force, span, tick) in enumerate(gauges):
+            text = f"{force:.2f} N" if math.isfinite(force) else "--- N"
+            lay = self.gauge_layout(text, row)
+            x, y, w, h = lay["panel"]
+            blend_rect(x, y, x + w, y + h, black, 0.55, out)
+            x, y, _, _ = lay["label"]
+            draw_text(text_glyph_indices(label), FONT_GLYPHS, x, y, s, white, out)
+            x, y, w, h = lay["bar"]
+            fill = min(max(force / span, 0.0), 1.0) if math.isfinite(force) else math.nan
+            draw_gauge_bar(x, y, w, h, fill, tick, _RAMP_AT, _RAMP_COLOR, _EMPTY_COLOR, white, max(s, 2), 2 * s, out)
+            x, y, _, _ = lay["text"]
+            draw_text(text_glyph_indices(text), FONT_GLYPHS, x, y, s, white, out)
 
 
-#: The gauge spans [0, _GAUGE_SPAN * threshold]; the tick marks the threshold.
+#: The gauges' labels, bottom up.
+_GAUGE_LABELS = ("TIP", "HAPTIC")
+#: The ``TIP`` gauge spans [0, _GAUGE_SPAN * threshold]; its tick marks the threshold.
 _GAUGE_SPAN = 1.5
-#: Colour ramp of the gauge in units of the threshold: green, yellow at 75 %, red from the threshold on.
+#: Colour ramp of a gauge in units of its tick: green, yellow at 75 %, red from the tick on.
 _RAMP_AT = np.array([0.0, 0.75, 1.0])
 _RAMP_COLOR = np.array([[40, 190, 70], [240, 210, 40], [220, 40, 30]], dtype=np.uint8)
 _EMPTY_COLOR = np.array([70, 70, 70], dtype=np.uint8)
