@@ -10,20 +10,17 @@ import scipy.sparse
 
 from suture_gym.sim.mesh import rest_shape, signed_volumes
 from suture_gym.sim.model import Control, TissueMaterial
+from suture_gym.sim.rest_system import SparseCholesky
 from suture_gym.sim.scenes import compression_block, suturing_pad
 from suture_gym.sim.solver import Solver
-from suture_gym.sim.tissue_implicit import (
-    ImplicitTissue,
-    QuasiNewton,
-    SparseCholesky,
-    VertexBlockDescent,
-    implicit_tissue,
+from suture_gym.sim.tissue_energy import (
     incremental_potential,
     stable_neo_hookean_stress,
     stable_neo_hookean_tangent,
     stiffness_matrix,
     tet_stiffness,
 )
+from suture_gym.sim.tissue_implicit import ImplicitTissue, QuasiNewton, VertexBlockDescent, implicit_tissue
 
 REST = np.array([[0.0, 0.0, 0.0], [0.011, 0.001, -0.002], [0.002, 0.009, 0.001], [-0.001, 0.002, 0.010]])
 MU, LAM = 1.0e3, 9.0e3

@@ -27,7 +27,7 @@ from suture_gym.sim.mesh import box_tet_grid, signed_volumes
 from suture_gym.sim.model import Control, Model, State, TissueMaterial, TissueModel, TissueState
 from suture_gym.sim.scenes import Scene, cantilever, suturing_pad
 from suture_gym.sim.solver import Solver
-from suture_gym.sim.tissue_implicit import incremental_potential, stiffness_matrix
+from suture_gym.sim.tissue_energy import incremental_potential, stiffness_matrix
 
 #: Integrator the issue-13 checks validate (``Solver.tissue_integrator``); "xpbd" runs are in ``details``.
 STIFF_INTEGRATOR = "quasi_newton"
@@ -228,7 +228,7 @@ def check_tissue_sag_vs_fem() -> CheckResult:
     Scene: the environments' pad (bottom pinned) as in ``tissue_rest_stiff``, settled with mass-proportional
     damping ``2 omega_1`` (the quarter-wave shear mode; damping does not move the equilibrium). Reference:
     ``K u = M g`` with ``K`` the same linear tets' small-strain stiffness (the energy's rest Hessian,
-    :func:`~suture_gym.sim.tissue_implicit.stiffness_matrix`, Lame parameters of E and nu) and the model's
+    :func:`~suture_gym.sim.tissue_energy.stiffness_matrix`, Lame parameters of E and nu) and the model's
     lumped masses, solved with scipy; quantity: mean drop of the top face.
     """
     rate = _env_rate()
