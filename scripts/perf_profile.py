@@ -8,8 +8,8 @@ Usage::
 
 The benchmark runs twice in this process: once to compile everything, then under ``perf record`` attached to the
 process. A perf map (:mod:`suture_gym.measure.profiling`) then names the compiled code, so the report shows
-kernels and the helpers linked into them (``suture_gym.sim.rod_solver._factor_block in
-rod_solver.solve_block_tridiagonal``) beside numba's runtime
+kernels and the helpers linked into them (``suture_gym.sim.rod_linalg.factor_block in
+rod_linalg.solve_block_tridiagonal``) beside numba's runtime
 (``NRT_incref``, ``NRT_MemInfo_alloc_aligned``) and the interpreter. The map needs code compiled in this process,
 so numba compiles into an empty temporary cache (a minute or two; ``NUMBA_CACHE_DIR`` is ignored).
 

@@ -21,14 +21,12 @@ from suture_gym.sim.rod import (
     rod_solve_iteration,
     segment_strain,
 )
+from suture_gym.sim.rod_linalg import BLOCK, COUPLING_PATTERN, solve_block_tridiagonal
 from suture_gym.sim.rod_solver import (
-    BLOCK,
-    COUPLING_PATTERN,
     align_frames,
     assemble_rod_system,
     bend_twist_constraint,
     bend_twist_jacobian,
-    solve_block_tridiagonal,
     stretch_shear_constraint,
     stretch_shear_jacobian,
 )

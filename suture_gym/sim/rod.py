@@ -54,7 +54,8 @@ from suture_gym.sim.needle import NeedleModel, NeedleState
 from suture_gym.sim.quat import (
     quat_from_two_vectors,
 )
-from suture_gym.sim.rod_solver import BLOCK, dot3, rod_iteration_kernel, tension_from_multipliers
+from suture_gym.sim.rod_linalg import BLOCK, dot3
+from suture_gym.sim.rod_solver import rod_iteration_kernel, tension_from_multipliers
 
 
 @dataclass(frozen=True)

@@ -20,14 +20,8 @@ Kernels take their arrays in groups (tuples built once by :class:`~suture_gym.si
   row only where ``contact_eligible[i]`` (:func:`_contact_rows`);
 * ``system``: ``RodWork.system``, ``(diag, lower, fac (N, 7, 7), rhs, y, z (N, 7))``.
 
-The small helpers are compiled into their callers (``inline="always"``) and take their arrays whole with an index
-(``seg_rot, j`` rather than ``seg_rot[j]``; a block of ``diag`` by its index and row and column offsets): numba
-counts the reference of every view it makes in and out with atomic operations, and ``perf`` put that counting
-at about a fifth of the abdominal-wall scene's run time when the helpers took views. The same arithmetic, bit for
-bit, with neither (``scripts/bench.py``'s ``strands``, eight iterations a substep: 1.17-1.26 -> 1.09-1.13 ms).
-:func:`_factor_block` is compiled into :func:`solve_block_tridiagonal` at its one call site; the block solve
-stays a separate function (compiling it into the iteration's two call sites doubles the compilation time for a
-few percent).
+The 3 x 3 and quaternion helpers the rows are built with and the block solve are in
+:mod:`~suture_gym.sim.rod_linalg`, compiled into these kernels.
 """
 
 from __future__ import annotations
@@ -46,17 +40,20 @@ from suture_gym.sim.quat import (
     quat_turn_into,
     quat_turn_row,
 )
+from suture_gym.sim.rod_linalg import (
+    ab_into,
+    abt_acc,
+    darboux,
+    mtv_acc,
+    mv_acc,
+    relative_rotation_vector,
+    rot_diag_into,
+    skew_into,
+    skew_times_into,
+    solve_block_tridiagonal,
+    times_skew_t_acc,
+)
 
-#: A pivot of the block solve below this fraction of its row's diagonal marks the row as redundant.
-_PIVOT_TOL = 1.0e-12
-#: Rows per block of the direct solve: 3 stretch-shear (or attachment), 3 bend-twist, 1 contact.
-BLOCK = 7
-#: Entries of a coupling block ``A[b, b-1]`` of the rod's system that may be non-zero, (7, 7) bool: rows 0-2 of
-#: block b (stretch-shear, or attachment) in every column, rows 3-5 (bend-twist) in columns 3-5, row 6 (contact)
-#: in none. :func:`assemble_rod_system` writes no other entry and :func:`solve_block_tridiagonal` skips them.
-COUPLING_PATTERN = np.zeros((BLOCK, BLOCK), dtype=np.bool_)
-COUPLING_PATTERN[:3, :] = True
-COUPLING_PATTERN[3:6, 3:6] = True
 #: Weight of the frames' Newton residual |h| (rad) in the convergence measure. Measured on a 200-node thread
 #: dragged over the ground: once |h| <= 1e-3 rad the nodes are within ~3e-8 m (3e-5 of a segment) of the fully
 #: converged solve, so a tolerance of 1e-6 on the weighted value stops there.
@@ -69,107 +66,6 @@ _MAX_RELEASE_PASSES = 4
 # ---------------------------------------------------------------------------------------------------------
 # Constraint maths
 # ---------------------------------------------------------------------------------------------------------
-
-
-@njit(cache=True, inline="always")
-def dot3(a, b):
-    """Dot product of two 3-vectors."""
-    return a[0] * b[0] + a[1] * b[1] + a[2] * b[2]
-
-
-# The helpers below take stacks of matrices and vectors with an index (``a, ia`` is the matrix ``a[ia]``, a local
-# one a stack of one) and write at row and column offsets, rather than views such as ``seg_rot[j]`` or
-# ``diag[b, :3, :3]``: numba counts a view's reference in and out with atomic operations, per block and iteration.
-
-
-@njit(cache=True, inline="always")
-def _ab_into(a, ia, b, ib, out, io):
-    """``out[io] = a[ia] @ b[ib]`` for stacks of (3, 3) matrices, by loops (no BLAS call, no allocation; the fixed
-    bounds let them compile unrolled)."""
-    for i in range(3):
-        for j in range(3):
-            t = 0.0
-            for k in range(3):
-                t += a[ia, i, k] * b[ib, k, j]
-            out[io, i, j] = t
-
-
-@njit(cache=True, inline="always")
-def _abt_acc(a, ia, b, ib, scale, out, io, r0, c0):
-    """``out[io, r0:r0+3, c0:c0+3] += scale * a[ia] @ b[ib].T`` for stacks of (3, 3) matrices, by loops."""
-    for i in range(3):
-        for j in range(3):
-            t = 0.0
-            for k in range(3):
-                t += a[ia, i, k] * b[ib, j, k]
-            out[io, r0 + i, c0 + j] += scale * t
-
-
-@njit(cache=True, inline="always")
-def _mv_acc(a, ia, v, iv, scale, out, io):
-    """``out[io] += scale * a[ia] @ v[iv]`` for a stack of (3, 3) matrices and stacks of 3-vectors."""
-    for i in range(3):
-        t = 0.0
-        for k in range(3):
-            t += a[ia, i, k] * v[iv, k]
-        out[io, i] += scale * t
-
-
-@njit(cache=True, inline="always")
-def _mtv_acc(a, ia, v, iv, c0, scale, out, io):
-    """``out[io] += scale * a[ia].T @ v[iv, c0:c0+3]`` for a stack of (3, 3) matrices."""
-    for k in range(3):
-        vk = scale * v[iv, c0 + k]
-        for i in range(3):
-            out[io, i] += a[ia, k, i] * vk
-
-
-@njit(cache=True, inline="always")
-def _rot_diag_into(r, ir, d, idd, scale, out, io):
-    """``out[io] = scale * R diag(d) R^T`` (3, 3) for the rotation ``R = r[ir]`` and the diagonal ``d[idd]``
-    (symmetric: the upper triangle is computed and mirrored)."""
-    for i in range(3):
-        for j in range(i, 3):
-            t = scale * (
-                r[ir, i, 0] * d[idd, 0] * r[ir, j, 0]
-                + r[ir, i, 1] * d[idd, 1] * r[ir, j, 1]
-                + r[ir, i, 2] * d[idd, 2] * r[ir, j, 2]
-            )
-            out[io, i, j] = t
-            out[io, j, i] = t
-
-
-@njit(cache=True, inline="always")
-def _skew_times_into(x, y, z, a, ia, out, io):
-    """``out[io] = [(x, y, z)]x a[ia]`` (3, 3): each column the cross product of ``(x, y, z)`` with ``a``'s."""
-    for k in range(3):
-        out[io, 0, k] = y * a[ia, 2, k] - z * a[ia, 1, k]
-        out[io, 1, k] = z * a[ia, 0, k] - x * a[ia, 2, k]
-        out[io, 2, k] = x * a[ia, 1, k] - y * a[ia, 0, k]
-
-
-@njit(cache=True, inline="always")
-def _times_skew_t_acc(a, ia, x, y, z, out, io, r0, c0):
-    """``out[io, r0:r0+3, c0:c0+3] += a[ia] [(x, y, z)]x^T``: row ``r`` gains ``(x, y, z)`` crossed with ``a``'s row
-    ``r``."""
-    for r in range(3):
-        out[io, r0 + r, c0 + 0] += y * a[ia, r, 2] - z * a[ia, r, 1]
-        out[io, r0 + r, c0 + 1] += z * a[ia, r, 0] - x * a[ia, r, 2]
-        out[io, r0 + r, c0 + 2] += x * a[ia, r, 1] - y * a[ia, r, 0]
-
-
-@njit(cache=True, inline="always")
-def _skew_into(x, y, z, out, io):
-    """Write ``[(x, y, z)]x`` into ``out[io]`` (3, 3)."""
-    out[io, 0, 0] = 0.0
-    out[io, 0, 1] = -z
-    out[io, 0, 2] = y
-    out[io, 1, 0] = z
-    out[io, 1, 1] = 0.0
-    out[io, 1, 2] = -x
-    out[io, 2, 0] = -y
-    out[io, 2, 1] = x
-    out[io, 2, 2] = 0.0
 
 
 @njit(cache=True, inline="always")
@@ -214,23 +110,9 @@ def stretch_shear_jacobian(q):
     """``dC_ss / dtheta = [d3(q)]x`` (3, 3) for a world rotation vector ``dtheta`` applied to ``q``."""
     r = quat_to_matrix(q)
     s = np.zeros((1, 3, 3))
-    _skew_into(r[0, 2], r[1, 2], r[2, 2], s, 0)
+    skew_into(r[0, 2], r[1, 2], r[2, 2], s, 0)
     return s[0]
 
-
-@njit(cache=True, inline="always")
-def _darboux(quats, j0, j1):
-    """``r = conj(q0) q1`` of ``q0 = quats[j0]``, ``q1 = quats[j1]`` as a tuple (w, x, y, z), sign chosen so that
-    ``w >= 0`` (same rotation)."""
-    a0, a1, a2, a3 = quats[j0, 0], quats[j0, 1], quats[j0, 2], quats[j0, 3]
-    b0, b1, b2, b3 = quats[j1, 0], quats[j1, 1], quats[j1, 2], quats[j1, 3]
-    w = a0 * b0 + a1 * b1 + a2 * b2 + a3 * b3
-    x = a0 * b1 - a1 * b0 - a2 * b3 + a3 * b2
-    y = a0 * b2 + a1 * b3 - a2 * b0 - a3 * b1
-    z = a0 * b3 - a1 * b2 + a2 * b1 - a3 * b0
-    if w < 0.0:
-        return -w, -x, -y, -z
-    return w, x, y, z
 
 
 @njit(cache=True)
@@ -243,7 +125,7 @@ def bend_twist_constraint(q0, q1):
     quats = np.empty((2, 4))
     quats[0] = q0
     quats[1] = q1
-    _, x, y, z = _darboux(quats, 0, 1)
+    _, x, y, z = darboux(quats, 0, 1)
     out = np.empty(3)
     out[0] = x
     out[1] = y
@@ -255,7 +137,7 @@ def bend_twist_constraint(q0, q1):
 def _bend_twist_jacobian_into(quats, j, rot, out, io):
     """Write ``B = 1/2 (r_w I - [r_v]x) R0^T`` of ``q0 = quats[j]``, ``q1 = quats[j + 1]`` into ``out[io]`` (3, 3);
     ``rot[j]`` (3, 3) is ``R(q0)``."""
-    w, x, y, z = _darboux(quats, j, j + 1)
+    w, x, y, z = darboux(quats, j, j + 1)
     # the rows of r_w I - [r_v]x, without an allocation (this runs once per segment and iteration)
     for k in range(3):
         out[io, 0, k] = 0.5 * (w * rot[j, k, 0] + z * rot[j, k, 1] + -y * rot[j, k, 2])
@@ -279,155 +161,10 @@ def bend_twist_jacobian(q0, q1):
     return out[0]
 
 
+
 # ---------------------------------------------------------------------------------------------------------
-# Direct block-tridiagonal solve
+# Iteration: linearise, solve, apply
 # ---------------------------------------------------------------------------------------------------------
-
-
-@njit(cache=True, inline="always")
-def _factor_block(s, fac, b, pivots, ld):
-    """Factor the symmetric positive semi-definite :data:`BLOCK` x :data:`BLOCK` matrix ``s`` (its lower triangle is
-    read) as ``L D L^T`` into ``fac[b]``: ``L``'s unit lower triangle strictly below the diagonal, ``D^+`` (the
-    pivots' reciprocals) on it. A row whose pivot falls below :data:`_PIVOT_TOL` of its diagonal (a redundant or
-    fully pinned constraint) is dropped: its ``D^+`` entry and its column of ``L`` are zero, so
-    ``L^-T D^+ L^-1`` has zero rows and columns there and the row receives no multiplier. ``pivots``, ``ld``
-    (7,) are scratch. (Fixed size, so that the loops compile unrolled.)"""
-    n = BLOCK
-    for j in range(n):
-        s_jj = s[j, j]
-        t = s_jj
-        for k in range(j):
-            ld[k] = fac[b, j, k] * pivots[k]
-            t -= fac[b, j, k] * ld[k]
-        if s_jj <= 0.0 or t <= _PIVOT_TOL * s_jj:
-            pivots[j] = 0.0
-            fac[b, j, j] = 0.0
-            for i in range(j + 1, n):
-                fac[b, i, j] = 0.0
-            continue
-        pivots[j] = t
-        r = 1.0 / t
-        fac[b, j, j] = r
-        for i in range(j + 1, n):
-            t = s[i, j]
-            for k in range(j):
-                t -= fac[b, i, k] * ld[k]
-            fac[b, i, j] = t * r
-
-
-@njit(cache=True)
-def solve_block_tridiagonal(diag, lower, rhs, fac, y, z):
-    """Solve ``A z = rhs`` for symmetric block-tridiagonal ``A`` by a block ``L D L^T`` sweep, O(number of blocks).
-
-    ``diag`` (B, 7, 7) are the diagonal blocks ``A[b, b]`` (their lower triangles are read), ``lower`` (B, 7, 7)
-    the blocks ``A[b, b-1]`` (``lower[0]`` unused), ``rhs`` (B, 7). Scratch: ``fac`` (B, 7, 7) receives each Schur
-    complement's factors (:func:`_factor_block`), ``y`` (B, 7). Output ``z`` (B, 7).
-
-    With ``S_b = L_b D_b L_b^T`` the Schur complements, ``S_b = A[b, b] - G_b D_(b-1)^+ G_b^T`` where
-    ``G_b = A[b, b-1] L_(b-1)^-T``; the forward sweep keeps ``w_b = D_b^+ L_b^-1 y_b`` in ``y`` and the backward
-    sweep gives ``z_b = L_b^-T (w_b - D_b^+ L_b^-1 A[b+1, b]^T z_(b+1))``. No block is inverted: about half the
-    multiplications of inverting each ``S_b`` (230 blocks: 54.5-56 against 76-78 us), and more accurate.
-
-    ``lower`` must be zero outside :data:`COUPLING_PATTERN`, as the rod's system is: block ``b``'s stretch-shear
-    rows 0-2 couple to any row of block ``b-1`` (through ``x_j``, ``q_j`` and node ``j``'s contact row), its
-    bend-twist rows 3-5 only to bend-twist rows 3-5 (through ``q_j``), its contact row 6 to none. The products
-    skip the entries outside the pattern (so rows 3-5 of ``G_b`` are zero in columns 0-2, and row 6 is zero).
-    """
-    k7 = BLOCK
-    nb = rhs.shape[0]
-    schur = np.empty((k7, k7))
-    g = np.empty((6, k7))
-    hg = np.empty((6, k7))
-    pivots = np.empty(k7)
-    ld = np.empty(k7)
-    tv = np.empty(k7)
-    for b in range(nb):
-        if b == 0:
-            for i in range(k7):
-                for j in range(i + 1):
-                    schur[i, j] = diag[0, i, j]
-                y[0, i] = rhs[0, i]
-        else:
-            # G = lower[b] L^-T (forward substitution along each row: G L^T = lower[b]); hg = G D^+
-            for i in range(3):
-                for j in range(k7):
-                    t = lower[b, i, j]
-                    for k in range(j):
-                        t -= g[i, k] * fac[b - 1, j, k]
-                    g[i, j] = t
-                    hg[i, j] = t * fac[b - 1, j, j]
-            for i in range(3, 6):
-                for j in range(3):
-                    g[i, j] = 0.0
-                    hg[i, j] = 0.0
-                for j in range(3, k7):
-                    t = lower[b, i, j] if j < 6 else 0.0
-                    for k in range(3, j):
-                        t -= g[i, k] * fac[b - 1, j, k]
-                    g[i, j] = t
-                    hg[i, j] = t * fac[b - 1, j, j]
-            # the Schur complement's lower triangle; rows 3-5 of G vanish in columns 0-2, its row 6 everywhere
-            for i in range(3):
-                for j in range(i + 1):
-                    t = diag[b, i, j]
-                    for k in range(k7):
-                        t -= hg[i, k] * g[j, k]
-                    schur[i, j] = t
-            for i in range(3, 6):
-                for j in range(i + 1):
-                    t = diag[b, i, j]
-                    for k in range(3, k7):
-                        t -= hg[i, k] * g[j, k]
-                    schur[i, j] = t
-            for j in range(k7):
-                schur[6, j] = diag[b, 6, j]
-            # y_b = rhs_b - G w_(b-1)
-            for i in range(3):
-                t = rhs[b, i]
-                for k in range(k7):
-                    t -= g[i, k] * y[b - 1, k]
-                y[b, i] = t
-            for i in range(3, 6):
-                t = rhs[b, i]
-                for k in range(3, k7):
-                    t -= g[i, k] * y[b - 1, k]
-                y[b, i] = t
-            y[b, 6] = rhs[b, 6]
-        _factor_block(schur, fac, b, pivots, ld)
-        # w_b = D^+ L^-1 y_b, in place
-        for j in range(k7):
-            t = y[b, j]
-            for k in range(j):
-                t -= fac[b, j, k] * tv[k]
-            tv[j] = t
-        for j in range(k7):
-            y[b, j] = tv[j] * fac[b, j, j]
-    for b in range(nb - 1, -1, -1):
-        if b == nb - 1:
-            for i in range(k7):
-                tv[i] = y[b, i]
-        else:
-            # lower[b+1]^T z_(b+1): columns 0-2 and 6 of lower[b+1] are non-zero in rows 0-2 only
-            for i in range(k7):
-                t = 0.0
-                kmax = 6 if 3 <= i < 6 else 3
-                for k in range(kmax):
-                    t += lower[b + 1, k, i] * z[b + 1, k]
-                tv[i] = t
-            # tv <- w_b - D^+ L^-1 tv
-            for j in range(k7):
-                t = tv[j]
-                for k in range(j):
-                    t -= fac[b, j, k] * tv[k]
-                tv[j] = t
-            for j in range(k7):
-                tv[j] = y[b, j] - fac[b, j, j] * tv[j]
-        # z_b = L^-T tv
-        for j in range(k7 - 1, -1, -1):
-            t = tv[j]
-            for k in range(j + 1, k7):
-                t -= fac[b, k, j] * z[b, k]
-            z[b, j] = t
 
 
 @njit(cache=True, inline="always")
@@ -460,26 +197,6 @@ def align_frames(node_pos, seg_inv_inertia, seg_quat):
             # the turn by the angle between them about d3 x edge, as the unnormalised quaternion (1 + cos, sin
             # axis) = 2 cos(angle / 2) (cos(angle / 2), sin(angle / 2) axis): no trigonometric call
             quat_premultiply_row(seg_quat, j, 1.0 + c, cx, cy, cz)
-
-
-@njit(cache=True, inline="always")
-def _relative_rotation_vector(quats, j, quats0, out, io):
-    """Write the rotation vector (rad, world) of ``q conj(q0)``, ``q = quats[j]``, ``q0 = quats0[j]``, into
-    ``out[io]`` (3,), the short way."""
-    q_0, q_1, q_2, q_3 = quats[j, 0], quats[j, 1], quats[j, 2], quats[j, 3]
-    p_0, p_1, p_2, p_3 = quats0[j, 0], quats0[j, 1], quats0[j, 2], quats0[j, 3]
-    w = q_0 * p_0 + q_1 * p_1 + q_2 * p_2 + q_3 * p_3
-    x = -q_0 * p_1 + q_1 * p_0 - q_2 * p_3 + q_3 * p_2
-    y = -q_0 * p_2 + q_1 * p_3 + q_2 * p_0 - q_3 * p_1
-    z = -q_0 * p_3 - q_1 * p_2 + q_2 * p_1 + q_3 * p_0
-    if w < 0.0:
-        w, x, y, z = -w, -x, -y, -z
-    s = np.sqrt(x * x + y * y + z * z)
-    if s < 1.0e-300:
-        out[io, 0], out[io, 1], out[io, 2] = 0.0, 0.0, 0.0
-        return
-    f = 2.0 * np.arctan2(s, w) / s
-    out[io, 0], out[io, 1], out[io, 2] = x * f, y * f, z * f
 
 
 @njit(cache=True, inline="always")
@@ -556,7 +273,7 @@ def _frame_blocks(seg_quat, seg_inv_inertia, start, frames, lam, residual):
     dth = np.empty((1, 3))
     for j in range(nseg):
         quat_to_matrix_row(seg_quat, j, seg_rot, j)
-        _skew_into(seg_rot[j, 0, 2], seg_rot[j, 1, 2], seg_rot[j, 2, 2], seg_s, j)
+        skew_into(seg_rot[j, 0, 2], seg_rot[j, 1, 2], seg_rot[j, 2, 2], seg_s, j)
     for j in range(nseg - 1):
         _bend_twist_jacobian_into(seg_quat, j, seg_rot, bend_b, j)
     _frame_torque(lam, seg_s, bend_b, seg_h)
@@ -580,8 +297,8 @@ def _frame_blocks(seg_quat, seg_inv_inertia, start, frames, lam, residual):
         if j < nseg - 1:
             twist_stiff += 0.25 * np.sqrt(lam[j + 1, 3] ** 2 + lam[j + 1, 4] ** 2 + lam[j + 1, 5] ** 2)
         winv_mod[0, 2] = 1.0 / (inertia[0, 2] + twist_stiff)
-        _rot_diag_into(seg_rot, j, winv_mod, 0, 1.0, seg_winv, j)
-        _relative_rotation_vector(seg_quat, j, seg_quat_start, dth, 0)
+        rot_diag_into(seg_rot, j, winv_mod, 0, 1.0, seg_winv, j)
+        relative_rotation_vector(seg_quat, j, seg_quat_start, dth, 0)
         # g = R diag(inertia) R^T dtheta - (J_theta^T lambda)_j, through the body frame
         for k in range(3):
             body[0, k] = inertia[0, k] * (
@@ -589,10 +306,10 @@ def _frame_blocks(seg_quat, seg_inv_inertia, start, frames, lam, residual):
             )
         for i in range(3):
             g[0, i] = -seg_h[j, i]
-        _mv_acc(seg_rot, j, body, 0, 1.0, g, 0)
+        mv_acc(seg_rot, j, body, 0, 1.0, g, 0)
         for i in range(3):
             seg_h[j, i] = 0.0
-        _mv_acc(seg_winv, j, g, 0, 1.0, seg_h, j)
+        mv_acc(seg_winv, j, g, 0, 1.0, seg_h, j)
         residual = max(residual, _FRAME_RESIDUAL_WEIGHT * max(abs(seg_h[j, 0]), abs(seg_h[j, 1]), abs(seg_h[j, 2])))
     return residual
 
@@ -611,7 +328,7 @@ def _attachment_block(node_pos, rod, needle, frames, system, needle_pos, needle_
         quat_to_matrix_row(needle_quat.reshape(1, 4), 0, rn, 0)
         r = att_r.reshape(1, 3)
         att_r[:] = 0.0
-        _mv_acc(rn, 0, swage_body.reshape(1, 3), 0, 1.0, r, 0)
+        mv_acc(rn, 0, swage_body.reshape(1, 3), 0, 1.0, r, 0)
         for i in range(3):
             val = -(node_pos[0, i] - needle_pos[i] - att_r[i])
             residual = max(residual, abs(val) / seg_rest_length[0])
@@ -621,12 +338,12 @@ def _attachment_block(node_pos, rod, needle, frames, system, needle_pos, needle_
             tmp = np.empty((1, 3, 3))
             tmp2 = np.empty((1, 3, 3))
             winv = att_winv.reshape(1, 3, 3)
-            _ab_into(rn, 0, needle_inv_inertia_body.reshape(1, 3, 3), 0, tmp, 0)
+            ab_into(rn, 0, needle_inv_inertia_body.reshape(1, 3, 3), 0, tmp, 0)
             att_winv[:] = 0.0
-            _abt_acc(tmp, 0, rn, 0, 1.0, winv, 0, 0, 0)
-            _skew_into(att_r[0], att_r[1], att_r[2], tmp2, 0)
-            _ab_into(tmp2, 0, winv, 0, tmp, 0)
-            _abt_acc(tmp, 0, tmp2, 0, 1.0, diag, 0, 0, 0)
+            abt_acc(tmp, 0, rn, 0, 1.0, winv, 0, 0, 0)
+            skew_into(att_r[0], att_r[1], att_r[2], tmp2, 0)
+            ab_into(tmp2, 0, winv, 0, tmp, 0)
+            abt_acc(tmp, 0, tmp2, 0, 1.0, diag, 0, 0, 0)
             for i in range(3):
                 diag[0, i, i] += node_inv_mass[0] + needle_inv_mass
             _add_axis_inv_mass(rod, 0, 1.0, diag, 0, 0, 0)
@@ -653,7 +370,7 @@ def _stretch_value(node_pos, seg_rot, j, i, compliant, alpha, lam, l):
 @njit(cache=True, inline="always")
 def _bend_values(seg_quat, j, bend_compliance, lam, inv_dt2):
     """``-C - alpha~ lambda`` (a 3-tuple) of the bend-twist rows of segments j, j+1."""
-    _, c_x, c_y, c_z = _darboux(seg_quat, j, j + 1)  # bend_twist_constraint, as scalars
+    _, c_x, c_y, c_z = darboux(seg_quat, j, j + 1)  # bend_twist_constraint, as scalars
     b = j + 1
     return (
         -c_x - bend_compliance[j, 0] * inv_dt2 * lam[b, 3],
@@ -685,7 +402,7 @@ def _segment_blocks(node_pos, seg_quat, rod, has_needle, frames, system, lam, dt
             or seg_stretch_compliance[j, 2] != 0.0
         )  # fmt: skip
         if compliant:
-            _rot_diag_into(seg_rot, j, seg_stretch_compliance, j, inv_dt2, tmp3, 0)  # alpha~_ss, world frame
+            rot_diag_into(seg_rot, j, seg_stretch_compliance, j, inv_dt2, tmp3, 0)  # alpha~_ss, world frame
         if not build:
             for i in range(3):
                 residual = max(residual, abs(_stretch_value(node_pos, seg_rot, j, i, compliant, tmp3, lam, l)))
@@ -694,8 +411,8 @@ def _segment_blocks(node_pos, seg_quat, rod, has_needle, frames, system, lam, dt
                 residual = max(residual, abs(v0), abs(v1), abs(v2))
             continue
         d3x, d3y, d3z = seg_rot[j, 0, 2], seg_rot[j, 1, 2], seg_rot[j, 2, 2]
-        _skew_times_into(d3x, d3y, d3z, seg_winv, j, tmp, 0)  # tmp = [d3]x W_j
-        _times_skew_t_acc(tmp, 0, d3x, d3y, d3z, diag, b, 0, 0)
+        skew_times_into(d3x, d3y, d3z, seg_winv, j, tmp, 0)  # tmp = [d3]x W_j
+        times_skew_t_acc(tmp, 0, d3x, d3y, d3z, diag, b, 0, 0)
         w_sum = (node_inv_mass[j] + node_inv_mass[j + 1]) / (l * l)
         for i in range(3):
             val = _stretch_value(node_pos, seg_rot, j, i, compliant, tmp3, lam, l)
@@ -727,10 +444,10 @@ def _segment_blocks(node_pos, seg_quat, rod, has_needle, frames, system, lam, dt
             for i in range(3):
                 lower[b, i, i] = -node_inv_mass[j] / (l * lp)
             _add_axis_inv_mass(rod, j, -1.0 / (l * lp), lower, b, 0, 0)
-            _abt_acc(tmp, 0, bend_b, j - 1, 1.0, lower, b, 0, 3)
+            abt_acc(tmp, 0, bend_b, j - 1, 1.0, lower, b, 0, 3)
             if j < nseg - 1:
-                _ab_into(bend_b, j, seg_winv, j, tmp2, 0)
-                _abt_acc(tmp2, 0, bend_b, j - 1, -1.0, lower, b, 3, 3)
+                ab_into(bend_b, j, seg_winv, j, tmp2, 0)
+                abt_acc(tmp2, 0, bend_b, j - 1, -1.0, lower, b, 3, 3)
     return residual
 
 
@@ -743,9 +460,9 @@ def _bend_rows(j, seg_quat, bend_compliance, frames, diag, rhs, lam, inv_dt2, tm
     for i in range(3):
         for k in range(3):
             tmp2[0, i, k] = seg_winv[j, i, k] + seg_winv[j + 1, i, k]
-    _ab_into(bend_b, j, tmp2, 0, tmp3, 0)
-    _abt_acc(tmp3, 0, bend_b, j, 1.0, diag, b, 3, 3)
-    _abt_acc(tmp, 0, bend_b, j, -1.0, diag, b, 0, 3)
+    ab_into(bend_b, j, tmp2, 0, tmp3, 0)
+    abt_acc(tmp3, 0, bend_b, j, 1.0, diag, b, 3, 3)
+    abt_acc(tmp, 0, bend_b, j, -1.0, diag, b, 0, 3)
     values = _bend_values(seg_quat, j, bend_compliance, lam, inv_dt2)
     for i in range(3):
         diag[b, 3 + i, 3 + i] += bend_compliance[j, i] * inv_dt2
@@ -817,11 +534,11 @@ def _frame_torque(mult, seg_s, bend_b, out):
     nseg = out.shape[0]
     out[:] = 0.0
     for j in range(nseg):
-        _mtv_acc(seg_s, j, mult, j + 1, 0, 1.0, out, j)
+        mtv_acc(seg_s, j, mult, j + 1, 0, 1.0, out, j)
         if j < nseg - 1:
-            _mtv_acc(bend_b, j, mult, j + 1, 3, -1.0, out, j)
+            mtv_acc(bend_b, j, mult, j + 1, 3, -1.0, out, j)
         if j >= 1:
-            _mtv_acc(bend_b, j - 1, mult, j, 3, 1.0, out, j)
+            mtv_acc(bend_b, j - 1, mult, j, 3, 1.0, out, j)
 
 
 @njit(cache=True, inline="always")
@@ -891,14 +608,14 @@ def apply_rod_solution(rod, needle, frames, contacts, z, lam, node_pos, seg_quat
     for j in range(nseg):
         for k in range(3):
             dtheta[0, k] = -seg_h[j, k]
-        _mv_acc(seg_winv, j, t, j, 1.0, dtheta, 0)
+        mv_acc(seg_winv, j, t, j, 1.0, dtheta, 0)
         if dtheta[0, 0] != 0.0 or dtheta[0, 1] != 0.0 or dtheta[0, 2] != 0.0:  # clamped frames stay bit-exact
             quat_turn_row(seg_quat, j, dtheta[0, 0], dtheta[0, 1], dtheta[0, 2])
     if has_needle:  # once per iteration
         p = -z[0, :3]
         needle_pos += needle_inv_mass * p
         dtheta[:] = 0.0
-        _mv_acc(att_winv.reshape(1, 3, 3), 0, cross3(att_r, p).reshape(1, 3), 0, 1.0, dtheta, 0)
+        mv_acc(att_winv.reshape(1, 3, 3), 0, cross3(att_r, p).reshape(1, 3), 0, 1.0, dtheta, 0)
         quat_turn_into(needle_quat, dtheta[0], needle_quat)
 
 
