@@ -5,13 +5,11 @@ products, skew matrices and quaternion differences on stacks of arrays, and the 
 The helpers take their arrays whole with an index (``a, ia`` is the (3, 3) matrix ``a[ia]``, a local one a stack
 of one; ``quats, j`` the unit quaternion ``quats[j]``, (w, x, y, z)) and write at row and column offsets, rather
 than taking views such as ``seg_rot[j]`` or ``diag[b, :3, :3]``: numba counts the reference of every view it makes
-in and out with atomic operations, and ``perf`` put that counting at about a fifth of the abdominal-wall scene's
-run time when the helpers took views. The same arithmetic, bit for bit, with neither (``scripts/bench.py``'s
-``strands``, eight iterations a substep: 1.17-1.26 -> 1.09-1.13 ms). They are compiled into their callers
-(``inline="always"``; numba's cache does not see an edit to one from a caller in another module: clear the cache
-after editing). :func:`factor_block` is compiled into :func:`solve_block_tridiagonal` at its one call site; the
-block solve stays a separate function (compiling it into the iteration's two call sites doubles the compilation
-time for a few percent).
+in and out with atomic operations, a large share of the rod's solve when the helpers took views
+(docs/notes/performance.md). They are compiled into their callers (``inline="always"``; numba's cache does not see
+an edit to one from a caller in another module: clear the cache after editing). :func:`factor_block` is compiled
+into :func:`solve_block_tridiagonal` at its one call site; the block solve stays a separate function (compiled into
+the iteration's two call sites it doubles the compilation time for a few percent).
 """
 
 from __future__ import annotations
