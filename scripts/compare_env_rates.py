@@ -15,7 +15,7 @@ and the pair's ``ratio`` is new over old of the best over all rounds.
 Usage::
 
     python scripts/compare_env_rates.py --ref 5eedff7 \\
-        SutureGym/NeedleInsert-v0=SutureGym/NeedleInsert-v2 SutureGym/WoundClosure-v0=SutureGym/WoundClosure-v2
+        SutureGym/NeedleInsert-v0=SutureGym/NeedleInsert-v3 SutureGym/WoundClosure-v0=SutureGym/WoundClosure-v3
 """
 
 from __future__ import annotations

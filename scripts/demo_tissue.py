@@ -26,9 +26,8 @@ import numpy as np  # noqa: E402
 from tqdm import tqdm  # noqa: E402
 
 from suture_gym.sim.mesh import TetMesh  # noqa: E402
-from suture_gym.sim.model import Control, Model, State, TissueMaterial, TissueModel, TissueState  # noqa: E402
-from suture_gym.sim.scenes import two_bar_wound  # noqa: E402
-from suture_gym.sim.solver import Solver  # noqa: E402
+from suture_gym.sim.model import Control, Model, State, TissueModel, TissueState  # noqa: E402
+from suture_gym.sim.scenes import PAPER_SOLVER, PAPER_TISSUE, two_bar_wound  # noqa: E402
 
 
 def wound_face_pairs(rest: np.ndarray, left: np.ndarray, right: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
@@ -54,7 +53,7 @@ def main(argv: list[str] | None = None) -> int:
         if not (np.isfinite(value) and value > 0):
             parser.error(f"--{name.replace('_', '-')} must be a positive number, got {value}")
 
-    scene = two_bar_wound(material=TissueMaterial())
+    scene = two_bar_wound(material=PAPER_TISSUE)
     tissue = scene.model.tissue
     rest = tissue.particle_rest_q
     width, height = scene.settings["bar_size_m"][1], scene.settings["bar_size_m"][2]
@@ -72,10 +71,11 @@ def main(argv: list[str] | None = None) -> int:
     mesh = TetMesh(vertices=rest, tets=tissue.tet_indices)
     pinned = (tissue.particle_inv_mass == 0.0) | grasp
     model = Model(
-        tissue=TissueModel.from_mesh(mesh, TissueMaterial(), pinned=pinned), gravity=scene.model.gravity
+        tissue=TissueModel.from_mesh(mesh, PAPER_TISSUE,
+                                     pinned=pinned), gravity=scene.model.gravity
     )
     state = State(tissue=TissueState.at_rest(model.tissue))
-    solver, control = Solver(), Control()
+    solver, control = PAPER_SOLVER, Control()
 
     left, right = wound_face_pairs(rest, scene.regions["left_wound_face"], scene.regions["right_wound_face"])
     top = rest[left, 2] >= 0.75 * height  # the upper quarter, where the forceps acts

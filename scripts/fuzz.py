@@ -26,7 +26,7 @@ the env id, config file, action mode, strategy, the episode's seed and the step 
 Each episode's env is reset with that seed and its actions are drawn from ``np.random.default_rng([seed, 1])``,
 so one event replays alone::
 
-    python scripts/fuzz.py --replay '{"id": "SutureGym/NeedleInsert-v2", "config": "needle_insert.yaml",
+    python scripts/fuzz.py --replay '{"id": "SutureGym/NeedleInsert-v3", "config": "needle_insert.yaml",
         "action_mode": "wrench", "strategy": "random", "seed": 123, "step": 45}'
 
 (any event object of the JSON works, as a string or ``@file.json``); it plays the episode up to that step and

@@ -2,7 +2,7 @@
 
 Steps:
 
-1. train DAgger (``configs/agents/dagger.yml``, :mod:`suture_gym.baselines.dagger`) on ``SutureGym/NeedleInsert-v2``
+1. train DAgger (``configs/agents/dagger.yml``, :mod:`suture_gym.baselines.dagger`) on ``SutureGym/NeedleInsert-v3``
    (randomised by default) with a progress bar: the scripted surgeon's demonstrations, then iterations in which
    the learner acts alone and the surgeon labels every state it visits (run directory
    ``<out>/dagger_NeedleInsert_s<seed>/``); ``--algo ppo`` trains PPO warm-started by behaviour cloning
@@ -49,7 +49,7 @@ from suture_gym.baselines.evaluation import (  # noqa: E402
 from suture_gym.baselines.training import train  # noqa: E402
 from suture_gym.render import write_video  # noqa: E402
 
-ENV_ID = "SutureGym/NeedleInsert-v2"
+ENV_ID = "SutureGym/NeedleInsert-v3"
 #: The committed models of ``ENV_ID`` (docs/results.md), one directory per training seed.
 COMMITTED = ROOT / "models" / "NeedleInsert"
 #: Env steps per video frame (the default 5 ms env step gives 25 fps at real time).

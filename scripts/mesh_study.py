@@ -123,7 +123,7 @@ def _stitch(name: str, mesh: TetMesh) -> dict:
         config = {"scene": {"kind": "mesh", "path": path, "cell_size": edge, "gap": 0.0015,
                             "incision": _incision(name, mesh)}}
         try:
-            env = gym.make("SutureGym/SutureThrow-v2", config=config)
+            env = gym.make("SutureGym/SutureThrow-v3", config=config)
         except ValueError as error:
             return {"stitch": "not built", "error": str(error)}
         expert = ExpertPolicy(env)

@@ -32,9 +32,9 @@ from suture_gym.sim.anatomy import hand_surface  # noqa: E402
 
 CONFIGS = ENV_DIR
 SCENES = {
-    "abdominal_wall": ("SutureGym/WoundClosure-v2", CONFIGS / "abdominal_wall_wound_closure.yaml"),
-    "hand": ("SutureGym/SutureThrow-v2", CONFIGS / "hand_suture_throw.yaml"),
-    "mesh": ("SutureGym/SutureThrow-v2", ROOT / "docs" / "examples" / "mesh_suture_throw.yaml"),
+    "abdominal_wall": ("SutureGym/WoundClosure-v3", CONFIGS / "abdominal_wall_wound_closure.yaml"),
+    "hand": ("SutureGym/SutureThrow-v3", CONFIGS / "hand_suture_throw.yaml"),
+    "mesh": ("SutureGym/SutureThrow-v3", ROOT / "docs" / "examples" / "mesh_suture_throw.yaml"),
 }
 
 

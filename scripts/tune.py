@@ -2,10 +2,10 @@
 
 Usage::
 
-    python scripts/tune.py --env SutureGym/NeedleInsert-v2 --n-trials 20 --n-timesteps 20000
-    python scripts/tune.py --env SutureGym/NeedleInsert-v2 --n-trials 20          # resumes the same study
+    python scripts/tune.py --env SutureGym/NeedleInsert-v3 --n-trials 20 --n-timesteps 20000
+    python scripts/tune.py --env SutureGym/NeedleInsert-v3 --n-trials 20          # resumes the same study
     python scripts/tune.py --storage postgresql://user@host/optuna --study-name shared ...   # several machines
-    python scripts/tune.py --hyperparams behaviour_cloning="{dataset: suture_gym/NeedleInsert-v2/expert-v0}"
+    python scripts/tune.py --hyperparams behaviour_cloning="{dataset: suture_gym/NeedleInsert-v3/expert-v0}"
 
 Trials start from the env id's entry in ``configs/agents/<algo>.yml``; ``--hyperparams KEY=VALUE`` (VALUE read
 as YAML, ``null`` removes the key) fixes keys, which are then not sampled. The study is stored in the database
@@ -39,7 +39,7 @@ def _override(text: str) -> tuple[str, object]:
 def main(argv: list[str] | None = None) -> int:
     parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     parser.add_argument("--algo", default="ppo", help="algorithm with a search space (ppo)")
-    parser.add_argument("--env", default="SutureGym/NeedleInsert-v2", help="Gymnasium env id")
+    parser.add_argument("--env", default="SutureGym/NeedleInsert-v3", help="Gymnasium env id")
     parser.add_argument("--n-trials", type=int, default=10, help="trials to run now (added to the study's)")
     parser.add_argument("--timeout", type=float, default=None, help="stop starting trials after this many s")
     parser.add_argument("--n-timesteps", type=int, default=20_000, help="env steps per trial")

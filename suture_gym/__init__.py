@@ -3,7 +3,7 @@
 The physics lives in :mod:`suture_gym.sim` (XPBD tetrahedral tissue, a rigid curved needle and a
 Cosserat suture thread); measurements against analytic references live in :mod:`suture_gym.measure`.
 All quantities are SI: metres, kilograms, seconds, newtons. Importing the package registers the environments
-(``SutureGym/NeedleInsert-v2``, ``SutureGym/SutureThrow-v2``, ``SutureGym/WoundClosure-v2`` and their
+(``SutureGym/NeedleInsert-v3``, ``SutureGym/SutureThrow-v3``, ``SutureGym/WoundClosure-v3`` and their
 goal-conditioned ``...Goal`` variants); see :mod:`suture_gym.envs`.
 """
 

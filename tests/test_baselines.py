@@ -22,9 +22,9 @@ from suture_gym.baselines.training import train  # noqa: E402
 #: (algo, env id, env steps): the shipped configs with the budget, batch, warm-up and time limit shortened
 #: (HER samples only finished episodes, so episodes end before learning starts).
 SMOKE = (
-    ("ppo", "SutureGym/NeedleInsert-v2", 128),
-    ("sac", "SutureGym/NeedleInsert-v2", 150),
-    ("tqc", "SutureGym/NeedleInsertGoal-v2", 150),
+    ("ppo", "SutureGym/NeedleInsert-v3", 128),
+    ("sac", "SutureGym/NeedleInsert-v3", 150),
+    ("tqc", "SutureGym/NeedleInsertGoal-v3", 150),
 )
 
 
@@ -51,8 +51,8 @@ def test_config_trains_saves_loads_and_evaluates(tmp_path, algo, env_id, steps):
 
 def test_goal_configs_use_her_with_info_dicts():
     for algo in ("sac", "tqc"):
-        for env_id in ("SutureGym/NeedleInsertGoal-v2", "SutureGym/SutureThrowGoal-v2",
-                       "SutureGym/WoundClosureGoal-v2"):
+        for env_id in ("SutureGym/NeedleInsertGoal-v3", "SutureGym/SutureThrowGoal-v3",
+                       "SutureGym/WoundClosureGoal-v3"):
             hyperparams = load_hyperparams(algo, env_id)
             assert hyperparams["replay_buffer_class"] == "HerReplayBuffer"
             assert hyperparams["replay_buffer_kwargs"]["copy_info_dict"] is True
@@ -61,31 +61,31 @@ def test_goal_configs_use_her_with_info_dicts():
 
 @pytest.mark.parametrize("seed", [0, 1, 2])
 def test_expert_inserts_needle_under_randomisation(seed):
-    summary = evaluate("SutureGym/NeedleInsert-v2", "expert", episodes=1, seed=seed)  # randomised by default
+    summary = evaluate("SutureGym/NeedleInsert-v3", "expert", episodes=1, seed=seed)  # randomised by default
     assert summary["success_rate"] == 1.0
     assert summary["diverged_episodes"] == 0
 
 
 def test_expert_inserts_needle_in_pose_delta_mode():
-    summary = evaluate("SutureGym/NeedleInsert-v2", "expert", episodes=1, seed=0,
+    summary = evaluate("SutureGym/NeedleInsert-v3", "expert", episodes=1, seed=0,
                        env_kwargs={"action_mode": "pose_delta"})
     assert summary["success_rate"] == 1.0
 
 
 def test_expert_throws_suture():
-    summary = evaluate("SutureGym/SutureThrow-v2", "expert", episodes=1, seed=0)
+    summary = evaluate("SutureGym/SutureThrow-v3", "expert", episodes=1, seed=0)
     assert summary["success_rate"] == 1.0
     assert summary["diverged_episodes"] == 0
 
 
 @pytest.mark.slow
 def test_expert_closes_wound():
-    summary = evaluate("SutureGym/WoundClosure-v2", "expert", episodes=1, seed=0)
+    summary = evaluate("SutureGym/WoundClosure-v3", "expert", episodes=1, seed=0)
     assert summary["success_rate"] == 1.0
     assert summary["diverged_episodes"] == 0
 
 
-@pytest.mark.parametrize("env_id", ["SutureGym/NeedleInsert-v2", "SutureGym/WoundClosure-v2"])
+@pytest.mark.parametrize("env_id", ["SutureGym/NeedleInsert-v3", "SutureGym/WoundClosure-v3"])
 def test_expert_speeds_default_per_task_and_reject_bad_values(env_id):
     env = gym.make(env_id)
     task = env.unwrapped.task
@@ -101,7 +101,7 @@ def test_expert_speeds_default_per_task_and_reject_bad_values(env_id):
 def test_expert_pull_slides_along_workspace_walls(monkeypatch):
     """Components of the pull toward a wall the tip is within WORKSPACE_INSET of are dropped; the rest keeps
     unit length; a tip cornered against every wall the pull heads for is not pulled at all."""
-    env = gym.make("SutureGym/SutureThrow-v2")
+    env = gym.make("SutureGym/SutureThrow-v3")
     env.reset(seed=0)
     expert = ExpertPolicy(env)
     sim = env.unwrapped.sim
@@ -123,7 +123,7 @@ def test_expert_pull_slides_along_workspace_walls(monkeypatch):
 
 
 def test_expert_leans_the_running_sutures_last_pull_ahead_along_the_suture():
-    env = gym.make("SutureGym/WoundClosure-v2")
+    env = gym.make("SutureGym/WoundClosure-v3")
     env.reset(seed=0)
     expert = ExpertPolicy(env)
     arcs = env.unwrapped.sim.arcs
@@ -133,13 +133,13 @@ def test_expert_leans_the_running_sutures_last_pull_ahead_along_the_suture():
     advance = (arcs[-1].center - arcs[-2].center) / np.linalg.norm(arcs[-1].center - arcs[-2].center)
     assert np.linalg.norm(last) == pytest.approx(1.0)
     assert last @ advance > 0.5 and last @ arcs[-1].pull_direction > 0.5  # ahead, and still back and up
-    single = gym.make("SutureGym/SutureThrow-v2")
+    single = gym.make("SutureGym/SutureThrow-v3")
     single.reset(seed=0)
     np.testing.assert_allclose(ExpertPolicy(single)._planned_pull(0), single.unwrapped.sim.arcs[0].pull_direction)
 
 
 def test_tip_position_matches_observation():
-    env = gym.make("SutureGym/NeedleInsert-v2")
+    env = gym.make("SutureGym/NeedleInsert-v3")
     env.reset(seed=0)
     for _ in range(5):
         env.step(env.action_space.sample())
@@ -154,7 +154,7 @@ def test_expert_rejects_foreign_env():
 
 def test_demonstrations_round_trip(tmp_path):
     out = tmp_path / "demos.npz"
-    summary = record("SutureGym/NeedleInsert-v2", 2, out, seed=3, progress=False)
+    summary = record("SutureGym/NeedleInsert-v3", 2, out, seed=3, progress=False)
     data = np.load(out)
     lengths = data["episode_lengths"]
     assert summary["steps"] == int(lengths.sum()) == data["actions"].shape[0]
@@ -167,7 +167,7 @@ def test_demonstrations_round_trip(tmp_path):
     assert bool(np.all(done[ends])) and int(done.sum()) == 2
     assert np.array_equal(data["observations"][1:lengths[0]], data["next_observations"][:lengths[0] - 1])
     assert float(np.abs(data["actions"]).max()) <= 1.0
-    env = gym.make("SutureGym/NeedleInsert-v2")
+    env = gym.make("SutureGym/NeedleInsert-v3")
     expert = ExpertPolicy(env)
     obs, _ = env.reset(seed=3)
     replayed = 0.0
@@ -189,8 +189,8 @@ def test_train_command_from_scratch_leaves_out_the_warm_start(tmp_path, monkeypa
         return hyperparams
 
     monkeypatch.setattr(script, "load_hyperparams", shortened)
-    assert "behaviour_cloning" in shortened("ppo", "SutureGym/NeedleInsert-v2")
-    assert script.main(["--algo", "ppo", "--env", "SutureGym/NeedleInsert-v2", "--from-scratch", "--n-timesteps",
+    assert "behaviour_cloning" in shortened("ppo", "SutureGym/NeedleInsert-v3")
+    assert script.main(["--algo", "ppo", "--env", "SutureGym/NeedleInsert-v3", "--from-scratch", "--n-timesteps",
                         "128", "--out", str(tmp_path), "--eval-freq", "0", "--checkpoint-freq", "0",
                         "--no-progress"]) == 0
     run_dir = tmp_path / "ppo_NeedleInsert_s0"

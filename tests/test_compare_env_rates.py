@@ -7,8 +7,8 @@ from conftest import import_script
 @pytest.mark.parametrize(
     ("argv", "message"),
     [
-        (["--ref", "HEAD", "SutureGym/NeedleInsert-v2"], "a pair is OLD_ID=NEW_ID, got 'SutureGym/NeedleInsert-v2'"),
-        (["--ref", "HEAD", "=SutureGym/NeedleInsert-v2"], "a pair is OLD_ID=NEW_ID"),
+        (["--ref", "HEAD", "SutureGym/NeedleInsert-v3"], "a pair is OLD_ID=NEW_ID, got 'SutureGym/NeedleInsert-v3'"),
+        (["--ref", "HEAD", "=SutureGym/NeedleInsert-v3"], "a pair is OLD_ID=NEW_ID"),
         (["--ref", "no-such-ref", "a=b"], "--ref 'no-such-ref' is not a commit"),
         (["--ref", "HEAD", "--rounds", "0", "a=b"], "--rounds must be >= 1, got 0"),
     ],

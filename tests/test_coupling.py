@@ -4,6 +4,7 @@ the tip's anchor friction, the tear bound and rigid supports. No solver here (se
 test_robustness.py)."""
 
 import math
+from dataclasses import replace
 
 import numpy as np
 import pytest
@@ -43,7 +44,7 @@ from suture_gym.sim.coupling import (
 )
 from suture_gym.sim.coupling.compliance import diagonal
 from suture_gym.sim.mesh import box_tet_grid
-from suture_gym.sim.model import TissueMaterial, TissueModel
+from suture_gym.sim.model import TissueModel
 from suture_gym.sim.needle import NeedleModel, NeedleState
 from suture_gym.sim.quat import quat_from_axis_angle, quat_mul, quat_to_matrix
 from suture_gym.sim.rigid import (
@@ -54,6 +55,12 @@ from suture_gym.sim.rigid import (
     world_inv_inertia,
 )
 from suture_gym.sim.rod import RodModel, SutureParams
+from suture_gym.sim.scenes import PAPER_TISSUE
+
+#: A bare point-tip coupling: no insertion force model (no tip patch, cutting or exit force), 1 N to puncture,
+#: 4 N to tear, 10 N/m axial friction.
+POINT_TIP_COUPLING = CouplingParams(puncture_force=1.0, exit_puncture_force=0.0, cutting_force=0.0,
+                                    tip_contact_radius=0.0, tear_force=4.0, needle_axial_friction=10.0)
 
 RNG = np.random.default_rng(7)
 H = 1e-7  # central-difference step, m
@@ -101,7 +108,8 @@ def test_bad_params_are_named(field, value):
 
 def test_spacing_order_is_checked():
     with pytest.raises(ValueError, match="path_spacing_min"):
-        CouplingParams(path_spacing_min=2e-3, path_spacing_max=1e-3)
+        CouplingParams(path_spacing_min=2e-3, path_spacing_max=1e-3, puncture_force=1.0, exit_puncture_force=0.0,
+                       cutting_force=0.0, tip_contact_radius=0.0, tear_force=4.0, needle_axial_friction=10.0)
 
 
 # --- constraint maths -------------------------------------------------------------------------------------
@@ -324,7 +332,7 @@ Q0 = np.array([0.5, 0.5, -0.5, -0.5])
 
 def _block_tissue():
     mesh = box_tet_grid(BLOCK, (6, 4, 4))
-    return TissueModel.from_mesh(mesh, TissueMaterial())
+    return TissueModel.from_mesh(mesh, PAPER_TISSUE)
 
 
 def _needle_pose(model: NeedleModel, angle: float):
@@ -354,7 +362,7 @@ def _sweep(params=None, angles=None):
     for the solver's reading of that row's force)."""
     tissue = _block_tissue()
     needle = NeedleModel.from_shape()
-    model = CouplingModel.build(tissue, needle, None, params or CouplingParams())
+    model = CouplingModel.build(tissue, needle, None, params or POINT_TIP_COUPLING)
     state = CouplingState.empty(model)
     work = CouplingWork(model)
     q = tissue.particle_rest_q.copy()
@@ -465,7 +473,7 @@ def test_the_strand_end_stays_in_its_path_once_it_has_gone_in_through_the_entry(
 def test_no_puncture_below_the_threshold_keeps_the_tip_anchored():
     tissue = _block_tissue()
     needle = NeedleModel.from_shape()
-    model = CouplingModel.build(tissue, needle)
+    model = CouplingModel.build(tissue, needle, None, POINT_TIP_COUPLING)
     state = CouplingState.empty(model)
     work = CouplingWork(model)
     q = tissue.particle_rest_q
@@ -500,7 +508,7 @@ def test_retracted_tip_releases_its_open_path():
 
 def test_buffers_overflow_is_flagged_not_raised():
     angles = np.linspace(0.0, 2.0, 200)
-    _, _, _, log = _sweep(params=CouplingParams(max_path_nodes=4), angles=angles)
+    _, _, _, log = _sweep(params=replace(POINT_TIP_COUPLING, max_path_nodes=4), angles=angles)
     state = log[-1][1]
     assert state.overflow and state.pathnode_count == 4
 
@@ -528,7 +536,7 @@ def test_suture_extends_the_strand_coordinates():
     tissue = _block_tissue()
     needle = NeedleModel.from_shape()
     suture = RodModel.from_params(SutureParams(length=0.05, node_count=51))
-    model = CouplingModel.build(tissue, needle, suture)
+    model = CouplingModel.build(tissue, needle, suture, POINT_TIP_COUPLING)
     nn = needle.node_count
     assert model.strand_node_count == nn + 50
     chord = np.linalg.norm(np.diff(needle.node_pos_body, axis=0), axis=1).sum()
@@ -545,7 +553,7 @@ def test_knot_sits_knot_tail_from_the_free_end_and_bad_tails_are_named():
     tissue = _block_tissue()
     needle = NeedleModel.from_shape()
     suture = RodModel.from_params(SutureParams(length=0.05, node_count=51))
-    model = CouplingModel.build(tissue, needle, suture, knot_tail=0.008)
+    model = CouplingModel.build(tissue, needle, suture, POINT_TIP_COUPLING, knot_tail=0.008)
     assert model.knot_sigma == pytest.approx(model.strand_length - 0.008)
     for bad in (-1e-3, 0.05, float("nan")):
         with pytest.raises(ValueError, match="knot_tail"):
@@ -574,7 +582,7 @@ def test_node_surface_constraint_value_and_gradient_match_finite_differences():
 
 def test_surface_normal_is_the_face_normal_on_flat_ground_and_continuous_across_edges():
     tissue = _block_tissue()
-    surface = CouplingModel.build(tissue, NeedleModel.from_shape()).surface
+    surface = CouplingModel.build(tissue, NeedleModel.from_shape(), None, POINT_TIP_COUPLING).surface
     q = tissue.particle_rest_q
     tv = surface.tri_vertices
     args = (tv, surface.vertex_tri_start, surface.vertex_tri_index, q)
@@ -610,7 +618,7 @@ def test_surface_normal_is_the_face_normal_on_flat_ground_and_continuous_across_
 
 def test_a_contact_row_on_a_collapsed_neighbourhood_is_dropped():
     tissue = _block_tissue()
-    surface = CouplingModel.build(tissue, NeedleModel.from_shape()).surface
+    surface = CouplingModel.build(tissue, NeedleModel.from_shape(), None, POINT_TIP_COUPLING).surface
     q = np.full_like(tissue.particle_rest_q, 0.004)  # every vertex at one point: no normal anywhere
     tv = surface.tri_vertices
     n = surface_normal(0, np.full(3, 1.0 / 3.0), tv, surface.vertex_tri_start, surface.vertex_tri_index, q)
@@ -772,7 +780,7 @@ def test_an_exit_is_a_crossing_ahead_of_the_entry_at_its_strand_coordinate():
     crossing is the entry's (the front of the strand outside, the rest inside), an exit must not take it: the
     tip's closest point, at coordinate 0, instead (the whole-needle search used to return the entry)."""
     tissue = _block_tissue()
-    model = CouplingModel.build(tissue, NeedleModel.from_shape())
+    model = CouplingModel.build(tissue, NeedleModel.from_shape(), None, POINT_TIP_COUPLING)
     state, work = CouplingState.empty(model), CouplingWork(model)
     top = BLOCK[2]
     depth = np.array([0.3, -0.3, -1.0, -2.0, -3.0, -3.0, -3.0, -3.0, -2.0, -1.0, -0.5, 0.5, 1.0])
@@ -799,14 +807,14 @@ def test_an_exit_is_a_crossing_ahead_of_the_entry_at_its_strand_coordinate():
 
 def _pinned_bottom_block():
     mesh = box_tet_grid(BLOCK, (6, 4, 4))
-    return TissueModel.from_mesh(mesh, TissueMaterial(), pinned=mesh.vertices[:, 2] == 0.0)
+    return TissueModel.from_mesh(mesh, PAPER_TISSUE, pinned=mesh.vertices[:, 2] == 0.0)
 
 
 @pytest.mark.parametrize("upward", [True, False])
 def test_a_node_crossing_a_rigid_face_gets_a_row_keeping_it_on_its_side(upward):
     tissue = _pinned_bottom_block()
     needle = NeedleModel.from_shape()
-    model = CouplingModel.build(tissue, needle)
+    model = CouplingModel.build(tissue, needle, None, POINT_TIP_COUPLING)
     assert model.tri_rigid.sum() == 2 * 6 * 4  # the bottom face, and only it
     state, work = CouplingState.empty(model), CouplingWork(model)
     q = tissue.particle_rest_q
@@ -835,7 +843,7 @@ def test_a_node_crossing_a_rigid_face_gets_a_row_keeping_it_on_its_side(upward):
 def test_contacts_never_tear_and_a_push_against_a_rigid_face_is_not_tissue_force():
     tissue = _pinned_bottom_block()
     needle = NeedleModel.from_shape()
-    model = CouplingModel.build(tissue, needle)
+    model = CouplingModel.build(tissue, needle, None, POINT_TIP_COUPLING)
     state, work = CouplingState.empty(model), CouplingWork(model)
     rigid, soft = np.flatnonzero(model.tri_rigid)[0], np.flatnonzero(~model.tri_rigid)[0]
     dt = 1e-3
@@ -851,7 +859,7 @@ def test_contacts_never_tear_and_a_push_against_a_rigid_face_is_not_tissue_force
 
 @pytest.mark.parametrize("row", ["path", "access"])
 def test_a_row_holding_a_strand_at_the_tear_force_damages_the_tissue(row):
-    model = CouplingModel.build(_pinned_bottom_block(), NeedleModel.from_shape())
+    model = CouplingModel.build(_pinned_bottom_block(), NeedleModel.from_shape(), None, POINT_TIP_COUPLING)
     state, work = CouplingState.empty(model), CouplingWork(model)
     dt, tear = 1e-3, model.params.tear_force
     lam = -tear * dt * dt  # the cap of such a row (its multiplier is kept above -tear_force dt^2)
@@ -872,7 +880,7 @@ def test_a_row_holding_a_strand_at_the_tear_force_damages_the_tissue(row):
 def test_the_tip_never_punctures_a_rigid_face():
     tissue = _pinned_bottom_block()
     needle = NeedleModel.from_shape()
-    model = CouplingModel.build(tissue, needle)
+    model = CouplingModel.build(tissue, needle, None, POINT_TIP_COUPLING)
     state, work = CouplingState.empty(model), CouplingWork(model)
     q = tissue.particle_rest_q
     x = np.tile([0.5, 0.5, 0.5], (needle.node_count, 1))

@@ -7,6 +7,8 @@ import gymnasium as gym
 import numpy as np
 import pytest
 
+from suture_gym.tasks import NeedleInsert, SutureThrow, WoundClosure
+
 pytest.importorskip("stable_baselines3")
 
 import suture_gym  # noqa: E402,F401
@@ -23,7 +25,7 @@ NOMINAL = {"config": "configs/envs/needle_insert_deterministic.yaml"}
 
 @pytest.fixture(scope="module")
 def env():
-    env = gym.make("SutureGym/NeedleInsert-v2", **NOMINAL)
+    env = gym.make("SutureGym/NeedleInsert-v3", **NOMINAL)
     yield env
     env.close()
 
@@ -49,8 +51,8 @@ def test_dagger_settings_name_bad_values(change, message):
 
 
 def test_every_task_has_a_dagger_recipe():
-    for task in ("NeedleInsert", "SutureThrow", "WoundClosure"):
-        script, _ = resolve(load_hyperparams("dagger", f"SutureGym/{task}-v2"))
+    for task in (NeedleInsert, SutureThrow, WoundClosure):
+        script, _ = resolve(load_hyperparams("dagger", task.ENV_ID))
         assert set(script["dagger"]) == set(DAGGER_KEYS)
 
 
@@ -117,7 +119,7 @@ def test_transit_velocity_rises_crosses_and_glides_onto_the_approach_pose():
 def test_feedback_expert_carries_the_needle_to_the_next_stitch_with_soft_labels():
     """WoundClosure: after the first stitch the oracle's transit reaches the second stitch's approach pose (its
     turn starts) without saturating its labels."""
-    env = gym.make("SutureGym/WoundClosure-v2")
+    env = gym.make("SutureGym/WoundClosure-v3")
     obs, _ = env.reset(seed=0)
     oracle = FeedbackExpert(env, lead=0.06, gain=0.25)
     sim, task = env.unwrapped.sim, env.unwrapped.task
@@ -141,7 +143,7 @@ def test_dagger_run_writes_an_evaluable_model(tmp_path):
     hyperparams = {"policy": "MlpPolicy", "n_timesteps": 5000, "normalize": True, "env_kwargs": NOMINAL,
                    "policy_kwargs": {"net_arch": [32]},
                    "dagger": {"iterations": 3, "episodes_per_iteration": 1, "epochs": 2}}
-    result = train("dagger", "SutureGym/NeedleInsert-v2", seed=1, out_dir=tmp_path, progress_bar=False,
+    result = train("dagger", "SutureGym/NeedleInsert-v3", seed=1, out_dir=tmp_path, progress_bar=False,
                    hyperparams=hyperparams)
     run = result.run_dir
     for name in ("final_model.zip", "final_vecnormalize.pkl", "best_model.zip", "config.yaml", "summary.json",
@@ -159,15 +161,15 @@ def test_dagger_run_writes_an_evaluable_model(tmp_path):
     assert len(set(seeds)) == len(seeds) and min(seeds) >= 100_000
     curve = np.load(run / "eval" / "evaluations.npz")
     assert list(curve["timesteps"]) == [steps[0], steps[0] + steps[1]]
-    report = evaluate("SutureGym/NeedleInsert-v2", str(run / "final_model.zip"), episodes=1, seed=7)
+    report = evaluate("SutureGym/NeedleInsert-v3", str(run / "final_model.zip"), episodes=1, seed=7)
     assert report["vecnormalize"].endswith("final_vecnormalize.pkl") and report["env_kwargs"]["config"]
     best = summary["iterations"][summary["best_iteration"] - 1]["checkpoint_steps"]
     checkpoint = run / "checkpoints" / f"model_vecnormalize_{best}_steps.pkl"
     assert (run / "best_vecnormalize.pkl").read_bytes() == checkpoint.read_bytes()
-    assert evaluate("SutureGym/NeedleInsert-v2", str(run / "best_model.zip"), episodes=1,
+    assert evaluate("SutureGym/NeedleInsert-v3", str(run / "best_model.zip"), episodes=1,
                     seed=7)["vecnormalize"].endswith("best_vecnormalize.pkl")
     with pytest.raises(ValueError, match="cannot be resumed"):
-        train("dagger", "SutureGym/NeedleInsert-v2", out_dir=tmp_path, hyperparams=hyperparams,
+        train("dagger", "SutureGym/NeedleInsert-v3", out_dir=tmp_path, hyperparams=hyperparams,
               resume=run / "final_model.zip")
 
 
@@ -183,7 +185,7 @@ def test_rollouts_on_worker_processes_give_the_same_run(tmp_path):
     from stable_baselines3 import PPO
 
     for workers in (1, 2):
-        result = train("dagger", "SutureGym/NeedleInsert-v2", seed=3, out_dir=tmp_path / str(workers),
+        result = train("dagger", "SutureGym/NeedleInsert-v3", seed=3, out_dir=tmp_path / str(workers),
                        progress_bar=False, hyperparams=hyperparams, workers=workers)
         summary = json.loads((result.run_dir / "summary.json").read_text())
         weights = PPO.load(result.run_dir / "final_model.zip", device="cpu").policy.state_dict()
@@ -197,7 +199,7 @@ def test_rollouts_on_worker_processes_give_the_same_run(tmp_path):
         train("ppo", "Pendulum-v1", out_dir=tmp_path, progress_bar=False,
               hyperparams={"policy": "MlpPolicy", "n_timesteps": 64}, workers=2)
     with pytest.raises(ValueError, match="workers must be an integer >= 1, got 0"):
-        train("dagger", "SutureGym/NeedleInsert-v2", out_dir=tmp_path / "0", progress_bar=False,
+        train("dagger", "SutureGym/NeedleInsert-v3", out_dir=tmp_path / "0", progress_bar=False,
               hyperparams=hyperparams, workers=0)
 
 
@@ -214,7 +216,7 @@ def test_a_learner_that_holds_still_ends_its_rollout(tmp_path):
                    "policy_kwargs": {"net_arch": [32]},
                    "dagger": {"iterations": 2, "episodes_per_iteration": 2, "epochs": 1, "learning_rate": 1e-9,
                               "stall_steps": 20}}
-    result = train("dagger", "SutureGym/NeedleInsert-v2", seed=0, out_dir=tmp_path, progress_bar=False,
+    result = train("dagger", "SutureGym/NeedleInsert-v3", seed=0, out_dir=tmp_path, progress_bar=False,
                    hyperparams=hyperparams)
     import json
 
@@ -230,6 +232,6 @@ def test_action_for_wrench_scales_by_the_action_limits(env):
     np.testing.assert_allclose(env.unwrapped.action_for_wrench(wrench), [1.0, -0.5, 1.0, 0.25, 0.0, -1.0])
     with pytest.raises(ValueError, match="shape"):
         env.unwrapped.action_for_wrench(np.zeros(3))
-    pose = gym.make("SutureGym/NeedleInsert-v2", config={"action": {"mode": "pose_delta"}})
+    pose = gym.make("SutureGym/NeedleInsert-v3", config={"action": {"mode": "pose_delta"}})
     with pytest.raises(ValueError, match="pose_delta"):
         pose.unwrapped.action_for_wrench(np.zeros(6))

@@ -13,8 +13,8 @@ pytest.importorskip("stable_baselines3")
 from suture_gym.baselines.expert import record, record_minari  # noqa: E402
 from suture_gym.baselines.imitation import behaviour_clone, load_demos, load_minari_demos  # noqa: E402
 
-ENV = "SutureGym/NeedleInsert-v2"
-DATASET = "suture_gym/NeedleInsert-v2/expert-v0"
+ENV = "SutureGym/NeedleInsert-v3"
+DATASET = "suture_gym/NeedleInsert-v3/expert-v0"
 SHORT = {"max_episode_steps": 25}
 
 
@@ -82,8 +82,8 @@ def test_training_clones_a_dataset_by_id(root, tmp_path, monkeypatch):
     cloning = json.loads((result.run_dir / "summary.json").read_text())["behaviour_cloning"]
     assert cloning["dataset"] == DATASET and cloning["steps"] == 50 and cloning["expert_success_rate"] == 0.0
     assert not (result.run_dir / "demos.npz").exists()  # nothing recorded
-    with pytest.raises(ValueError, match=r"recorded on 'SutureGym/NeedleInsert-v2', not on 'SutureGym/SutureThrow"):
-        train("ppo", "SutureGym/SutureThrow-v2", out_dir=tmp_path, eval_freq=0, checkpoint_freq=0,
+    with pytest.raises(ValueError, match=r"recorded on 'SutureGym/NeedleInsert-v3', not on 'SutureGym/SutureThrow"):
+        train("ppo", "SutureGym/SutureThrow-v3", out_dir=tmp_path, eval_freq=0, checkpoint_freq=0,
               progress_bar=False, hyperparams=hyperparams)
 
 

@@ -99,6 +99,6 @@ def test_the_documentation_site_builds_with_warnings_as_errors(tmp_path):
                             cwd=ROOT, env=env, capture_output=True, text=True, timeout=600)
     assert result.returncode == 0, result.stderr[-4000:]
     for page in ("index.html", "design/index.html", "results/index.html", "changelog/index.html",
-                 "api/envs/index.html", "envs/NeedleInsert-v2/index.html", "envs/WoundClosureGoal-v2/index.html"):
+                 "api/envs/index.html", "envs/NeedleInsert-v3/index.html", "envs/WoundClosureGoal-v3/index.html"):
         assert (tmp_path / page).is_file(), page
-    assert "tip_pos_x" in (tmp_path / "envs/NeedleInsert-v2/index.html").read_text(encoding="utf-8")
+    assert "tip_pos_x" in (tmp_path / "envs/NeedleInsert-v3/index.html").read_text(encoding="utf-8")

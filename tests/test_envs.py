@@ -177,8 +177,8 @@ def test_an_episode_does_not_depend_on_the_episodes_before_it():
     from suture_gym.baselines.expert import ExpertPolicy
 
     config = ENV_DIR / "needle_insert_deterministic.yaml"
-    fresh = gym.make("SutureGym/NeedleInsert-v2", config=str(config)).unwrapped
-    used = gym.make("SutureGym/NeedleInsert-v2", config=str(config)).unwrapped
+    fresh = gym.make("SutureGym/NeedleInsert-v3", config=str(config)).unwrapped
+    used = gym.make("SutureGym/NeedleInsert-v3", config=str(config)).unwrapped
     expert, noise = ExpertPolicy(used), np.random.default_rng(3)
     obs, _ = used.reset(seed=3)  # first a noisy insertion, which touches other vertices in another order
     expert.reset()
@@ -191,7 +191,7 @@ def test_an_episode_does_not_depend_on_the_episodes_before_it():
 
 
 def test_observations_do_not_alias_internal_arrays():
-    env = _env("SutureGym/NeedleInsert-v2")
+    env = _env("SutureGym/NeedleInsert-v3")
     obs, _ = env.reset(seed=0)
     kept = obs.copy()
     obs[:] = 123.0
@@ -228,7 +228,7 @@ def test_snapshot_restore_replays_identically(env_id):
 
 
 def test_non_finite_and_misshapen_actions_raise():
-    env = _env("SutureGym/NeedleInsert-v2")
+    env = _env("SutureGym/NeedleInsert-v3")
     env.reset(seed=0)
     with pytest.raises(ValueError, match=r"finite.*\[2\]"):
         env.step(np.array([0.0, 0.0, np.nan, 0.0, 0.0, 0.0]))
@@ -266,7 +266,7 @@ def test_actions_outside_the_box_act_as_the_box_edge(action_mode):
     ids=["str-list", "str-array", "complex", "object", "bool"],
 )
 def test_actions_that_are_not_real_numbers_raise_naming_the_dtype(action):
-    env = _env("SutureGym/NeedleInsert-v2")
+    env = _env("SutureGym/NeedleInsert-v3")
     env.reset(seed=0)
     with pytest.raises(TypeError, match=f"dtype {np.asarray(action).dtype}"):
         env.step(action)
@@ -305,7 +305,7 @@ def _diverge(env):
     env.sim.state.tissue.particle_qd[:] = np.nan
 
 
-@pytest.mark.parametrize("env_id", ["SutureGym/NeedleInsert-v2", "SutureGym/NeedleInsertGoal-v2"])
+@pytest.mark.parametrize("env_id", ["SutureGym/NeedleInsert-v3", "SutureGym/NeedleInsertGoal-v3"])
 def test_divergence_is_a_failure_with_the_last_finite_observation(env_id):
     env = _env(env_id)
     env.reset(seed=0, options={"phase": "inserted"})
@@ -331,7 +331,7 @@ def test_divergence_is_a_failure_with_the_last_finite_observation(env_id):
 
 
 def test_a_non_finite_observation_is_a_divergence_and_leaves_the_task_as_it_was(monkeypatch):
-    env = _env("SutureGym/NeedleInsert-v2")
+    env = _env("SutureGym/NeedleInsert-v3")
     obs0, _ = env.reset(seed=0)
     before = env.task.get_state()
     observables = env.sim.observables
@@ -343,7 +343,7 @@ def test_a_non_finite_observation_is_a_divergence_and_leaves_the_task_as_it_was(
 
 
 def test_reset_options_are_checked():
-    env = _env("SutureGym/NeedleInsert-v2")
+    env = _env("SutureGym/NeedleInsert-v3")
     with pytest.raises(ValueError, match="unknown reset option"):
         env.reset(seed=0, options={"difficulty": 2})
     with pytest.raises(ValueError, match="phase"):
@@ -445,7 +445,7 @@ def test_a_randomised_phase_start_is_the_nominal_one_carried_over():
 
 
 def test_scripted_surgeon_completes_needle_insert():
-    env = _env("SutureGym/NeedleInsert-v2")
+    env = _env("SutureGym/NeedleInsert-v3")
     env.reset(seed=0)
     arc = env.sim.arcs[0]
     angle = arc.entry_angle - env.config.plan.start_angle
@@ -514,9 +514,9 @@ def test_goal_env_reward_is_compute_reward(env_id):
 def test_a_miss_ends_flat_episodes_only():
     """Relabelled goals of the goal-conditioned variant may still be reachable after a miss, so only the flat
     ids end on it (``termination.end_on_miss``)."""
-    flat = gym.make("SutureGym/NeedleInsert-v2").unwrapped
-    goal = gym.make("SutureGym/NeedleInsertGoal-v2").unwrapped
-    off = gym.make("SutureGym/NeedleInsert-v2", config={"termination": {"end_on_miss": False}}).unwrapped
+    flat = gym.make("SutureGym/NeedleInsert-v3").unwrapped
+    goal = gym.make("SutureGym/NeedleInsertGoal-v3").unwrapped
+    off = gym.make("SutureGym/NeedleInsert-v3", config={"termination": {"end_on_miss": False}}).unwrapped
     for env in (flat, goal, off):
         env.reset(seed=0)
     assert flat.task.end_on_miss and not goal.task.end_on_miss and not off.task.end_on_miss
@@ -526,7 +526,7 @@ def test_render_rgb_array_and_record_video(tmp_path):
     pytest.importorskip("moviepy")
     from gymnasium.wrappers import RecordVideo
 
-    env = gym.make("SutureGym/NeedleInsert-v2", render_mode="rgb_array")
+    env = gym.make("SutureGym/NeedleInsert-v3", render_mode="rgb_array")
     env = RecordVideo(env, str(tmp_path / "videos"), episode_trigger=lambda k: True, disable_logger=True)
     env.reset(seed=0)
     frame = env.unwrapped.render()
@@ -540,10 +540,10 @@ def test_render_rgb_array_and_record_video(tmp_path):
 
 
 def test_yaml_config_reaches_the_env():
-    env = gym.make("SutureGym/NeedleInsert-v2", config=CONFIGS / "needle_insert_deterministic.yaml").unwrapped
+    env = gym.make("SutureGym/NeedleInsert-v3", config=CONFIGS / "needle_insert_deterministic.yaml").unwrapped
     assert not env.config.randomization.enabled and env.config.randomization.youngs_modulus_scale != (1.0, 1.0)
     with pytest.raises(ValueError, match="'reward.bonus'"):
-        gym.make("SutureGym/NeedleInsert-v2", config={"reward": {"bonus": 1.0}})
+        gym.make("SutureGym/NeedleInsert-v3", config={"reward": {"bonus": 1.0}})
 
 
 def test_record_video_script_films_the_expert(tmp_path):
@@ -553,7 +553,7 @@ def test_record_video_script_films_the_expert(tmp_path):
     import sys
 
     script = Path(__file__).resolve().parents[1] / "scripts" / "record_video.py"
-    done = subprocess.run([sys.executable, str(script), "--env", "SutureGym/NeedleInsert-v2", "--out", str(tmp_path),
+    done = subprocess.run([sys.executable, str(script), "--env", "SutureGym/NeedleInsert-v3", "--out", str(tmp_path),
                            "--seconds", "0.1", "--every", "5", "--speed", "0.5", "--size", "160x120"],
                           capture_output=True, text=True, check=True, timeout=600)
     line = json.loads(done.stdout.strip().splitlines()[-1])
@@ -574,8 +574,8 @@ def test_a_start_phase_episode_does_not_depend_on_the_episodes_before_it():
     settled) replays bit for bit in a fresh env and in one that has run a random episode and another phase reset
     first."""
     inserted = {"phase": "inserted"}
-    fresh = gym.make("SutureGym/NeedleInsert-v2").unwrapped
-    used = gym.make("SutureGym/NeedleInsert-v2").unwrapped
+    fresh = gym.make("SutureGym/NeedleInsert-v3").unwrapped
+    used = gym.make("SutureGym/NeedleInsert-v3").unwrapped
     used.action_space.seed(1)
     used.reset(seed=1)
     for _ in range(120):

@@ -87,5 +87,5 @@ def test_every_event_records_a_reproducer_that_replays_it(fuzz, monkeypatch, cap
 
 def test_replay_names_what_an_event_lacks(fuzz):
     with pytest.raises(ValueError, match=r"lacks \['seed', 'step'\]"):
-        fuzz.replay({"id": "SutureGym/NeedleInsert-v2", "config": "needle_insert.yaml", "action_mode": "wrench",
+        fuzz.replay({"id": "SutureGym/NeedleInsert-v3", "config": "needle_insert.yaml", "action_mode": "wrench",
                      "strategy": "random"})

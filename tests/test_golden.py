@@ -43,16 +43,16 @@ PREFIX_RTOL = 1.0e-6
 
 #: (name, env id, config file or None, policy, env seed, steps)
 CASES = (
-    ("needle_insert_expert", "SutureGym/NeedleInsert-v2", None, "expert", 0, 480),
-    ("needle_insert_random", "SutureGym/NeedleInsert-v2", None, "random", 1, 200),
-    ("needle_insert_deterministic_expert", "SutureGym/NeedleInsert-v2", "needle_insert_deterministic.yaml", "expert", 7,
+    ("needle_insert_expert", "SutureGym/NeedleInsert-v3", None, "expert", 0, 480),
+    ("needle_insert_random", "SutureGym/NeedleInsert-v3", None, "random", 1, 200),
+    ("needle_insert_deterministic_expert", "SutureGym/NeedleInsert-v3", "needle_insert_deterministic.yaml", "expert", 7,
      300),
-    ("needle_insert_pose_delta_random", "SutureGym/NeedleInsert-v2", "needle_insert_pose_delta.yaml", "random", 2, 120),
-    ("suture_throw_expert", "SutureGym/SutureThrow-v2", None, "expert", 0, 400),
-    ("suture_throw_random", "SutureGym/SutureThrow-v2", None, "random", 3, 200),
-    ("wound_closure_expert", "SutureGym/WoundClosure-v2", None, "expert", 0, 400),
-    ("wound_closure_random", "SutureGym/WoundClosure-v2", None, "random", 4, 200),
-    ("needle_insert_goal_random", "SutureGym/NeedleInsertGoal-v2", None, "random", 5, 100),
+    ("needle_insert_pose_delta_random", "SutureGym/NeedleInsert-v3", "needle_insert_pose_delta.yaml", "random", 2, 120),
+    ("suture_throw_expert", "SutureGym/SutureThrow-v3", None, "expert", 0, 400),
+    ("suture_throw_random", "SutureGym/SutureThrow-v3", None, "random", 3, 200),
+    ("wound_closure_expert", "SutureGym/WoundClosure-v3", None, "expert", 0, 400),
+    ("wound_closure_random", "SutureGym/WoundClosure-v3", None, "random", 4, 200),
+    ("needle_insert_goal_random", "SutureGym/NeedleInsertGoal-v3", None, "random", 5, 100),
 )
 
 

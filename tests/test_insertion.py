@@ -17,6 +17,8 @@ from suture_gym.sim.needle import NeedleModel, VirtualCoupling, needle_point_vel
 from suture_gym.sim.quat import quat_to_matrix
 from suture_gym.sim.rod import SutureParams
 from suture_gym.sim.scenes import (
+    PAPER_COUPLING,
+    PAPER_SOLVER,
     WOUND_ARC_AXIS,
     WOUND_ARC_U,
     add_strands,
@@ -27,8 +29,6 @@ from suture_gym.sim.scenes import (
 )
 from suture_gym.sim.solver import Solver
 
-PAPER_COUPLING = CouplingParams(puncture_force=0.015, needle_axial_friction=0.5)  # two_bar_suturing's defaults
-
 
 @pytest.mark.parametrize("name", ["exit_puncture_force", "cutting_force", "tip_contact_radius"])
 @pytest.mark.parametrize("bad", [-1.0, math.nan, math.inf, "1"])
@@ -37,14 +37,21 @@ def test_new_parameters_reject_bad_values_by_name(name, bad):
         CouplingParams(**{name: bad})
 
 
+def _point_tip(radius: float) -> CouplingParams:
+    """1 N to puncture, 4 N to tear, 10 N/m of friction, no cutting or exit force, a tip patch of ``radius`` m."""
+    return CouplingParams(tip_contact_radius=radius, puncture_force=1.0, exit_puncture_force=0.0, cutting_force=0.0,
+                          tear_force=4.0, needle_axial_friction=10.0)
+
+
 def test_tip_length_must_cover_the_local_dent_of_the_tip_contact_model():
-    pad = suturing_pad(size=(0.01, 0.01, 0.004), cells=(2, 2, 1), material=TissueMaterial(youngs_modulus=3.0e4))
+    pad = suturing_pad(size=(0.01, 0.01, 0.004), cells=(2, 2, 1), material=TissueMaterial(youngs_modulus=3.0e4,
+                                                                                          poisson_ratio=0.49))
     needle = NeedleModel.from_shape()
     pose = needle_circle_pose(needle, (0.005, 0.005 + needle.shape.curvature_radius, 0.0045), WOUND_ARC_AXIS,
                               WOUND_ARC_U, wound_tip_angle(needle))  # fmt: skip
     with pytest.raises(ValueError, match=r"CouplingParams\.tip_length \(0\.002 m\) must cover"):
-        add_strands(pad, pose, coupling_params=CouplingParams(tip_contact_radius=1.0e-4))
-    add_strands(pad, pose, coupling_params=CouplingParams(tip_contact_radius=5.0e-3))  # a blunt tip is fine
+        add_strands(pad, pose, coupling_params=_point_tip(1.0e-4))
+    add_strands(pad, pose, coupling_params=_point_tip(5.0e-3))  # a blunt tip is fine
 
 
 def test_tip_series_compliance_is_the_punch_minus_the_patch():
@@ -93,11 +100,12 @@ def test_cutting_row_resists_only_an_advancing_tip():
 
 
 def test_tip_patch_spreads_the_anchor_over_the_vertices_within_its_radius():
-    pad = suturing_pad(size=(0.02, 0.02, 0.004), cells=(10, 10, 2), material=TissueMaterial(youngs_modulus=1.5e5))
+    pad = suturing_pad(size=(0.02, 0.02, 0.004), cells=(10, 10, 2), material=TissueMaterial(youngs_modulus=1.5e5,
+                                                                                            poisson_ratio=0.49))
     needle = NeedleModel.from_shape()
     pose = needle_circle_pose(needle, (0.01, 0.01 + needle.shape.curvature_radius, 0.0045), WOUND_ARC_AXIS,
                               WOUND_ARC_U, wound_tip_angle(needle))  # fmt: skip
-    scene = add_strands(pad, pose, coupling_params=CouplingParams(tip_contact_radius=1.0e-3))
+    scene = add_strands(pad, pose, coupling_params=_point_tip(1.0e-3))
     model, state = scene.model.coupling, scene.state.coupling
     tissue_q = scene.state.tissue.particle_q + 1.0e-4  # a shifted tissue: the offset keeps the anchor in place
     corners = model.tissue_rest_q[model.surface.tri_vertices]  # (F, 3, 3)
@@ -122,7 +130,7 @@ def _stitch(coupling: CouplingParams, duration: float) -> dict:
     the largest tip force while the tip pressed on an exit anchor, and the time of the first exit."""
     scene = two_bar_suturing(coupling_params=coupling)
     controller = StitchController.for_scene(scene)
-    solver, control, dt = Solver(), Control(), 1.0e-3
+    solver, control, dt = PAPER_SOLVER, Control(), 1.0e-3
     held, first_exit = 0.0, math.nan
     for k in range(int(round(duration / dt))):
         control.needle_wrench = controller.wrench(k * dt, scene.state)
@@ -148,7 +156,8 @@ def test_exit_threshold_holds_the_tip_until_it_is_passed():
 
 def _pad_push_scene(coupling: CouplingParams):
     """The tip upright over the middle of a 1 kPa 2 x 2 x 1 cm pad of 5 mm cells, ``eps`` above it."""
-    pad = suturing_pad(size=(0.02, 0.02, 0.01), cells=(4, 4, 2), material=TissueMaterial(youngs_modulus=1.0e3))
+    pad = suturing_pad(size=(0.02, 0.02, 0.01), cells=(4, 4, 2), material=TissueMaterial(youngs_modulus=1.0e3,
+                                                                                         poisson_ratio=0.49))
     needle = NeedleModel.from_shape()
     center = np.array([0.01, 0.01 + needle.shape.curvature_radius, 0.01 + coupling.resistance_eps])
     return add_strands(
@@ -179,9 +188,10 @@ def _push(scene, force: float, duration: float, solver: Solver, dt: float = 1.0e
 
 
 def test_backing_out_releases_the_path_and_a_later_push_punctures_again():
-    coupling = CouplingParams(puncture_force=0.05, exit_puncture_force=0.025, cutting_force=0.01)
+    coupling = CouplingParams(puncture_force=0.05, exit_puncture_force=0.025, cutting_force=0.01,
+                              tip_contact_radius=0.0, tear_force=4.0, needle_axial_friction=10.0)
     scene = _pad_push_scene(coupling)
-    solver = Solver()
+    solver = PAPER_SOLVER
     c = scene.state.coupling
     _push(scene, 0.1, 0.4, solver)  # twice the threshold: through the surface
     assert c.punctures == 1 and c.punctured and c.path_entered[0]

@@ -282,7 +282,7 @@ def test_vector_env_batches_dict_observations():
     from suture_gym.envs.vector import make_vector_env
 
     config = {"observation": {"mode": "rgbd", "camera": SMALL_CAMERA}}
-    venv = make_vector_env("SutureGym/NeedleInsert-v2", 2, config=config, workers=0)
+    venv = make_vector_env("SutureGym/NeedleInsert-v3", 2, config=config, workers=0)
     obs, _ = venv.reset(seed=[1, 2])
     assert obs["rgb"].shape == (2, 20, 24, 3) and obs["depth"].shape == (2, 20, 24, 1)
     obs, *_ = venv.step(np.zeros((2, 6), dtype=np.float32))
@@ -301,11 +301,11 @@ def test_sb3_multi_input_policy_and_vecnormalize_leave_the_images_alone():
     from suture_gym.envs.sb3 import make_sb3_vec_env
 
     config = {"observation": {"mode": "rgbd", "camera": {"width": 36, "height": 36}}}
-    venv = make_sb3_vec_env("SutureGym/NeedleInsert-v2", 1, config=config, workers=0)
+    venv = make_sb3_vec_env("SutureGym/NeedleInsert-v3", 1, config=config, workers=0)
     model = PPO("MultiInputPolicy", venv, n_steps=8, batch_size=8, n_epochs=1, device="cpu", seed=0)
     model.learn(8)
     venv.close()
-    env, eval_env = make_train_envs("SutureGym/NeedleInsert-v2", 1, 0, {"config": config}, {"clip_obs": 10.0})
+    env, eval_env = make_train_envs("SutureGym/NeedleInsert-v3", 1, 0, {"config": config}, {"clip_obs": 10.0})
     assert sorted(env.norm_obs_keys) == ["depth", "state"]
     obs = env.reset()
     assert obs["rgb"].dtype == np.uint8 and env.observation_space["rgb"].dtype == np.uint8

@@ -25,7 +25,7 @@ from suture_gym.measure.puncture import (
 from suture_gym.sim.coupling import CouplingParams
 from suture_gym.sim.model import Control
 from suture_gym.sim.quat import quat_to_matrix
-from suture_gym.sim.scenes import two_bar_suturing
+from suture_gym.sim.scenes import PAPER_SOLVER, two_bar_suturing
 from suture_gym.sim.solver import Solver
 
 DT = 1.0e-3  # s, the default substep (1 kPa scene)
@@ -84,10 +84,12 @@ def test_straight_push_on_the_default_tissue_does_not_diverge(push, puncture_for
     """The pushes that diverged within 11-227 substeps: a force straight down at the tip of the free needle of
     the 1 kPa two-bar scene, with a threshold it cannot reach (the tissue is crushed against its base) and
     with the scene's (the needle goes through), held for 0.6 s."""
-    scene = two_bar_suturing(coupling_params=CouplingParams(puncture_force=puncture_force))
+    scene = two_bar_suturing(coupling_params=CouplingParams(
+        puncture_force=puncture_force, exit_puncture_force=0.0, cutting_force=0.0, tip_contact_radius=0.0,
+        tear_force=4.0, needle_axial_friction=10.0))
     model, state = scene.model, scene.state
     needle = model.needle
-    solver, control = Solver(), Control()
+    solver, control = PAPER_SOLVER, Control()
     force = np.array([0.0, 0.0, -push])
     for _ in range(600):
         r = quat_to_matrix(state.needle.body_quat)
@@ -110,7 +112,7 @@ EDGE_DENT_CORNERS = (0, 12, 4, 19, 26, 16, 47, 38, 8, 51, 9, 16, 18, 50, 37, 15,
 
 
 def test_a_full_action_dent_at_the_pad_edge_does_not_diverge():
-    env = gym.make("SutureGym/NeedleInsert-v2")
+    env = gym.make("SutureGym/NeedleInsert-v3")
     env.reset(seed=627113664)
     sim = env.unwrapped.sim
     speeds = []

@@ -34,7 +34,7 @@ from suture_gym.sim.solver import Solver
 
 RNG = np.random.default_rng(3)
 G = (0.0, 0.0, -9.81)
-SOLVER = Solver()  # rod_iterations 8, rod_tolerance 1e-6
+SOLVER = Solver(iterations=1, max_speed=50.0, tissue_integrator="xpbd")  # rod_iterations 8, rod_tolerance 1e-6
 
 
 def step_solver(model, rod_state, steps, needle_state=None, suture_force=None, dt=1e-3):

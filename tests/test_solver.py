@@ -9,7 +9,15 @@ import pytest
 from suture_gym.sim.mesh import box_tet_grid
 from suture_gym.sim.model import Control, Model, State, TissueMaterial, TissueModel, TissueState
 from suture_gym.sim.needle import NeedleModel, NeedleState
-from suture_gym.sim.scenes import cantilever, compression_block, hanging_bar, paper_cube, two_bar_wound
+from suture_gym.sim.scenes import (
+    PAPER_SOLVER,
+    PAPER_TISSUE,
+    cantilever,
+    compression_block,
+    hanging_bar,
+    paper_cube,
+    two_bar_wound,
+)
 from suture_gym.sim.solver import Solver
 
 DT = 1e-3
@@ -18,12 +26,13 @@ DT = 1e-3
 def _small_scene(gravity=(0.0, 0.0, -9.81), damping=10.0, pin=True, nu=0.49):
     mesh = box_tet_grid((0.04, 0.02, 0.02), (4, 2, 2))
     pinned = mesh.vertices[:, 0] == 0.0 if pin else np.zeros(mesh.vertex_count, dtype=bool)
-    tissue = TissueModel.from_mesh(mesh, TissueMaterial(damping=damping, poisson_ratio=nu), pinned=pinned)
+    tissue = TissueModel.from_mesh(mesh, TissueMaterial(damping=damping, poisson_ratio=nu, youngs_modulus=1.0e3),
+                                   pinned=pinned)
     return Model(tissue=tissue, gravity=gravity), State(tissue=TissueState.at_rest(tissue))
 
 
 def _run(model, state, steps, solver=None, dt=DT):
-    solver = solver or Solver()
+    solver = solver or PAPER_SOLVER
     control = Control()
     for _ in range(steps):
         solver.step(model, state, control, dt)
@@ -58,7 +67,7 @@ def test_material_moduli():
     assert m.lame_mu == pytest.approx(400.0)
     assert m.lame_lambda == pytest.approx(400.0)
     assert m.hydrostatic_modulus == pytest.approx(800.0)
-    incompressible = TissueMaterial(poisson_ratio=0.5)
+    incompressible = TissueMaterial(poisson_ratio=0.5, youngs_modulus=1.0e3)
     assert math.isinf(incompressible.lame_lambda) and math.isinf(incompressible.hydrostatic_modulus)
 
 
@@ -82,18 +91,19 @@ def test_bad_solver_parameters_are_named(kwargs, message):
 def test_bad_dt_is_rejected(dt):
     model, state = _small_scene()
     with pytest.raises(ValueError, match="dt must be"):
-        Solver().step(model, state, Control(), dt)
+        PAPER_SOLVER.step(model, state, Control(), dt)
 
 
 def test_mismatched_state_and_bad_residual_buffer_are_rejected():
     model, _ = _small_scene()
     other_model, other_state = _small_scene()
     mesh = box_tet_grid((0.01, 0.01, 0.01), (1, 1, 1))
-    small = TissueModel.from_mesh(mesh, TissueMaterial())
+    small = TissueModel.from_mesh(mesh, PAPER_TISSUE)
     with pytest.raises(ValueError, match="does not match"):
-        Solver().step(model, State(tissue=TissueState.at_rest(small)), Control(), DT)
+        PAPER_SOLVER.step(model, State(tissue=TissueState.at_rest(small)), Control(), DT)
     with pytest.raises(ValueError, match="residuals"):
-        Solver(iterations=3).step(other_model, other_state, Control(), DT, residuals=np.zeros(2))
+        Solver(iterations=3, max_speed=50.0, tissue_integrator="xpbd").step(other_model, other_state, Control(), DT,
+                                                                            residuals=np.zeros(2))
 
 
 def test_control_and_model_validation():
@@ -109,7 +119,8 @@ def test_control_and_model_validation():
 
 def test_from_mesh_validation_and_mixed_materials():
     mesh = box_tet_grid((0.02, 0.01, 0.01), (2, 1, 1))
-    soft, stiff = TissueMaterial(youngs_modulus=1e3), TissueMaterial(youngs_modulus=4e3, damping=1.0)
+    soft = TissueMaterial(youngs_modulus=1e3, poisson_ratio=0.49)
+    stiff = TissueMaterial(youngs_modulus=4e3, damping=1.0, poisson_ratio=0.49)
     ids = (np.arange(mesh.tet_count) >= 5).astype(np.int64)
     model = TissueModel.from_mesh(mesh, [soft, stiff], tet_material=ids)
     assert np.allclose(model.tet_mu[:5], soft.lame_mu) and np.allclose(model.tet_mu[5:], stiff.lame_mu)
@@ -180,7 +191,8 @@ def test_residual_decreases_over_sweeps():
     model, state = _small_scene()
     _run(model, state, 10)
     residuals = np.zeros(8)
-    Solver(iterations=8).step(model, state, Control(), DT, residuals=residuals)
+    Solver(iterations=8, max_speed=50.0, tissue_integrator="xpbd").step(model, state, Control(), DT,
+                                                                        residuals=residuals)
     assert np.all(np.isfinite(residuals))
     assert residuals[-1] < 1e-2 * residuals[0]
 
@@ -226,7 +238,7 @@ def test_snapshot_restore_is_bit_identical():
 def test_divergence_sets_flag_without_raising():
     model, state = _small_scene()
     state.tissue.particle_q[7, 1] = np.nan
-    solver = Solver()
+    solver = PAPER_SOLVER
     solver.step(model, state, Control(), DT)
     assert state.diverged
     frozen = state.snapshot()
@@ -235,7 +247,7 @@ def test_divergence_sets_flag_without_raising():
 
     model, state = _small_scene()
     state.tissue.particle_qd[3] = [0.0, 0.0, 1e3]
-    Solver(max_speed=50.0).step(model, state, Control(), DT)
+    Solver(max_speed=50.0, iterations=1, tissue_integrator="xpbd").step(model, state, Control(), DT)
     assert state.diverged
 
 
@@ -297,7 +309,7 @@ def test_xpbd_stability_number_of_a_grid_is_dt_wave_speed_over_cell():
     from suture_gym.sim.tissue import xpbd_stability_number
 
     model, _ = _pad(3.0e4)
-    density = TissueMaterial().density
+    density = PAPER_TISSUE.density
     assert xpbd_stability_number(model.tissue, DT) == pytest.approx(DT * math.sqrt(3.0e4 / density) / 0.002)
 
 
@@ -307,7 +319,8 @@ def test_solver_warns_naming_the_parameters_when_xpbd_tissue_is_outside_its_stab
         _run(model, state, 2)
 
 
-@pytest.mark.parametrize("youngs, solver", [(3.0e3, Solver()), (3.0e4, Solver(tissue_integrator="quasi_newton"))])
+@pytest.mark.parametrize("youngs, solver", [(3.0e3, PAPER_SOLVER), (3.0e4, Solver(tissue_integrator="quasi_newton",
+                                                                                  iterations=1, max_speed=50.0))])
 def test_no_stability_warning_inside_the_range_or_with_the_implicit_integrator(youngs, solver):
     import warnings
 

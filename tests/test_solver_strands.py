@@ -13,6 +13,7 @@ from suture_gym.sim.needle import NeedleModel, NeedleState, VirtualCoupling
 from suture_gym.sim.quat import quat_to_matrix
 from suture_gym.sim.rod import RodModel, RodState, StaticObstacles, SutureParams, segment_strain
 from suture_gym.sim.scenes import (
+    PAPER_SOLVER,
     WOUND_ARC_AXIS,
     WOUND_ARC_U,
     add_strands,
@@ -22,6 +23,11 @@ from suture_gym.sim.scenes import (
     wound_tip_angle,
 )
 from suture_gym.sim.solver import PHASES, Solver
+
+#: A bare point-tip coupling: no insertion force model (no tip patch, cutting or exit force), 1 N to puncture,
+#: 4 N to tear, 10 N/m axial friction.
+POINT_TIP_COUPLING = CouplingParams(puncture_force=1.0, exit_puncture_force=0.0, cutting_force=0.0,
+                                    tip_contact_radius=0.0, tear_force=4.0, needle_axial_friction=10.0)
 
 DT = 1e-3
 
@@ -43,7 +49,7 @@ def test_needle_alone_accelerates_as_the_wrench_says():
     control = Control(needle_wrench=np.concatenate([force, -np.cross(needle.grip_pos_body, force)]))  # at the CoM
     steps = 50
     for _ in range(steps):
-        Solver().step(model, state, control, DT)
+        PAPER_SOLVER.step(model, state, control, DT)
     np.testing.assert_allclose(state.needle.body_vel, force / needle.body_mass * steps * DT, rtol=1e-12)
     np.testing.assert_allclose(state.needle.body_omega, 0.0, atol=1e-12)
     np.testing.assert_allclose(state.needle_reaction, 0.0, atol=1e-12)  # nothing constrains it
@@ -55,7 +61,7 @@ def test_needle_and_suture_without_tissue_stay_attached_and_the_thread_pulls_the
     model = Model(needle=needle, suture=suture)
     state = State.initial(model, needle=needle_state.copy(), suture=suture_state.copy())
     wrench = np.array([0.0, 0.01, 0.0, 0.0, 0.0, 1e-5])
-    solver = Solver()
+    solver = PAPER_SOLVER
     for _ in range(200):
         solver.step(model, state, Control(needle_wrench=wrench), DT)
     assert np.abs(segment_strain(suture, state.suture)).max() < 1e-4
@@ -73,7 +79,7 @@ def test_obstacles_hold_the_thread_of_a_held_needle():
         model = Model(needle=needle, suture=suture, obstacles=obstacles)
         state = State.initial(model, needle=needle_state.copy(), suture=suture_state.copy())
         for _ in range(400):
-            Solver().step(model, state, Control(), DT)
+            PAPER_SOLVER.step(model, state, Control(), DT)
         lowest[obstacles is None] = float(state.suture.node_pos[:, 2].min())
         assert np.abs(segment_strain(suture, state.suture)).max() < 1e-4
     assert lowest[True] < floor  # the free thread swings below the floor's height
@@ -84,7 +90,7 @@ def test_obstacles_hold_the_thread_of_a_held_needle():
 def test_step_records_phase_timings():
     scene = two_bar_suturing()
     timings = {}
-    Solver().step(scene.model, scene.state, Control(), DT, timings=timings)
+    PAPER_SOLVER.step(scene.model, scene.state, Control(), DT, timings=timings)
     assert set(timings) == set(PHASES) and all(v >= 0.0 for v in timings.values())
 
 
@@ -108,7 +114,7 @@ def test_step_rejects_state_that_does_not_match_the_model():
     state = scene.state
     state.suture = None
     with pytest.raises(ValueError, match="model.suture and state.suture"):
-        Solver().step(scene.model, state, Control(), DT)
+        PAPER_SOLVER.step(scene.model, state, Control(), DT)
 
 
 @pytest.mark.parametrize("field, value", [("rod_iterations", 0), ("rod_iterations", 2.5), ("rod_tolerance", -1.0)])
@@ -130,7 +136,7 @@ def _turning(scene, steps, start=0):
     """Step the suturing scene with the virtual coupling turning the needle at 1 rad/s."""
     model, state = scene.model, scene.state
     settings = scene.settings
-    vc, solver, control = VirtualCoupling(), Solver(), Control()
+    vc, solver, control = VirtualCoupling(), PAPER_SOLVER, Control()
     for k in range(start, start + steps):
         pos, quat = needle_circle_pose(model.needle, settings["arc_center_m"], settings["arc_axis"],
                                        settings["arc_u"], settings["tip_angle_rad"] + 1.0 * k * DT)
@@ -201,7 +207,7 @@ def test_same_controls_give_identical_runs():
 def test_nan_needle_is_flagged_not_raised_and_frozen():
     scene = two_bar_suturing()
     scene.state.needle.body_pos[1] = math.nan
-    solver = Solver()
+    solver = PAPER_SOLVER
     solver.step(scene.model, scene.state, Control(), DT)
     assert scene.state.diverged
     frozen = scene.state.snapshot()
@@ -214,10 +220,12 @@ def test_largest_wrench_straight_into_the_tissue_neither_explodes_nor_hangs(punc
     """10 N (more than any action limit) straight down at the tip, held for 0.5 s: with a threshold it cannot
     reach, the needle drags the tissue's surface down and slides off; with the scene's threshold it goes
     through. Either way every step returns and the state stays finite, below ``max_speed`` (not diverged)."""
-    scene = two_bar_suturing(coupling_params=CouplingParams(puncture_force=puncture_force))
+    scene = two_bar_suturing(coupling_params=CouplingParams(
+        puncture_force=puncture_force, exit_puncture_force=0.0, cutting_force=0.0, tip_contact_radius=0.0,
+        tear_force=4.0, needle_axial_friction=10.0))
     model, state = scene.model, scene.state
     needle = model.needle
-    solver, control = Solver(), Control()
+    solver, control = PAPER_SOLVER, Control()
     push = np.array([0.0, 0.0, -10.0])
     for _ in range(500):
         r = quat_to_matrix(state.needle.body_quat)
@@ -233,10 +241,12 @@ def test_largest_wrench_straight_into_the_tissue_neither_explodes_nor_hangs(punc
 
 def test_reaction_balances_a_quasi_static_push():
     """The needle resting on the tissue under a constant push feels the push back through the coupling."""
-    scene = two_bar_suturing(coupling_params=CouplingParams(puncture_force=1.0))
+    scene = two_bar_suturing(coupling_params=CouplingParams(
+        puncture_force=1.0, exit_puncture_force=0.0, cutting_force=0.0, tip_contact_radius=0.0, tear_force=4.0,
+        needle_axial_friction=10.0))
     model, state = scene.model, scene.state
     needle = model.needle
-    solver, control = Solver(), Control()
+    solver, control = PAPER_SOLVER, Control()
     push = np.array([0.0, 0.0, -0.01])
     for _ in range(1500):
         r = quat_to_matrix(state.needle.body_quat)
@@ -263,13 +273,14 @@ def test_a_thread_draped_into_a_wound_rests_on_the_base_not_below_the_bars():
     swage = np.array([0.001, width + 0.5 * gap, 0.016])  # above the gap, the needle clear of the bars
     pos = pos + swage - (pos + quat_to_matrix(quat) @ needle.swage_pos_body)
     scene = add_strands(tissue, (pos, quat), suture_params=SutureParams(length=0.02, node_count=21),
-                        suture_direction=(1.0, 0.0, -0.8))  # down along the gap, the tail 3.5 mm above the base
+                        suture_direction=(1.0, 0.0, -0.8),  # down along the gap, the tail 3.5 mm above the base
+                        coupling_params=POINT_TIP_COUPLING)
     model, state = scene.model, scene.state
     coupling, surface_q = model.coupling, model.tissue.particle_rest_q[model.coupling.surface.tri_vertices]
     np.testing.assert_array_equal(coupling.tri_on_support, np.all(surface_q[:, :, 2] == 0.0, axis=1))
     assert coupling.tri_on_support.sum() == 2 * 6 * 2 * 2  # two triangles per bottom cell of each bar
     np.testing.assert_allclose(model.obstacles.plane_normal, [[0.0, 0.0, 1.0]])
-    solver, radius = Solver(), model.suture.radius
+    solver, radius = PAPER_SOLVER, model.suture.radius
     for _ in range(400):
         solver.step(model, state, Control(), DT)
     x = state.suture.node_pos
@@ -293,12 +304,13 @@ def test_a_thread_hitting_tissue_without_a_static_obstacle_is_pushed_out_once():
     swage = np.array([0.004, 0.5 * width, height + 5.0e-4])  # over bar A, 0.5 mm above its top
     pos = pos + swage - (pos + quat_to_matrix(quat) @ needle.swage_pos_body)
     scene = add_strands(tissue, (pos, quat), suture_params=SutureParams(length=0.01, node_count=11),
-                        suture_direction=(1.0, 0.0, 0.0))  # along the bar, clear of its pinned ends
+                        suture_direction=(1.0, 0.0, 0.0),  # along the bar, clear of its pinned ends
+                        coupling_params=POINT_TIP_COUPLING)
     model, state = scene.model, scene.state
     assert model.obstacles is None
     speed = 1.5  # m/s down: one substep sinks the nodes 1 mm into the bar
     state.suture.node_vel[1:] = [0.0, 0.0, -speed]
-    Solver().step(model, state, Control(), DT)
+    PAPER_SOLVER.step(model, state, Control(), DT)
     x, v = state.suture.node_pos[1:], state.suture.node_vel[1:]
     assert not state.diverged
     assert x[:, 2].max() < height + 5.0e-4  # out to the surface, not launched above where it started
@@ -315,7 +327,8 @@ def test_a_thread_node_inside_the_tissue_is_not_pushed_out_through_a_clamped_fac
     tissue = two_bar_wound(bar_size=(0.024, 0.006, 0.006), cells=(6, 2, 2), gap=0.004, base=False)
     needle = NeedleModel.from_shape(gravity_compensation=True)
     pos, quat = needle_circle_pose(needle, np.array([0.012, 0.003, 0.03]), WOUND_ARC_AXIS, WOUND_ARC_U, 0.0)
-    scene = add_strands(tissue, (pos, quat), suture_params=SutureParams(length=0.01, node_count=11))
+    scene = add_strands(tissue, (pos, quat), suture_params=SutureParams(length=0.01, node_count=11),
+                        coupling_params=POINT_TIP_COUPLING)
     model, state = scene.model, scene.state
     coupling = model.coupling
     suture_q = state.suture.node_pos.copy()
@@ -344,7 +357,7 @@ def _peel(warm_start: bool, steps: int = 300, dt: float = 2.5e-3):
     model = Model(needle=needle, suture=suture, obstacles=StaticObstacles.ground(floor))
     state = State.initial(model, needle=NeedleState.at_rest(pos, quat),
                           suture=RodState.straight(suture, swage, (1.0, 0.0, 0.0)))
-    vc, solver, control, solves = VirtualCoupling(), Solver(), Control(), 0
+    vc, solver, control, solves = VirtualCoupling(), PAPER_SOLVER, Control(), 0
     for k in range(steps):
         target = needle.grip_pos_body + np.array([0.0, 0.0, 0.05 * k * dt])
         control.needle_wrench = vc.wrench(needle, state.needle, target, quat, target_vel=(0.0, 0.0, 0.05))
@@ -362,7 +375,7 @@ def test_a_one_iteration_thread_solve_still_lets_every_node_open_its_contact():
     floor = float(suture_state.node_pos[:, 2].min()) - 0.005
     model = Model(needle=needle, suture=suture, obstacles=StaticObstacles.ground(floor))
     state = State.initial(model, needle=needle_state.copy(), suture=suture_state.copy())
-    solver = Solver(rod_iterations=1)
+    solver = Solver(rod_iterations=1, iterations=1, max_speed=50.0, tissue_integrator="xpbd")
     for _ in range(400):
         solver.step(model, state, Control(), DT)
     assert not state.diverged

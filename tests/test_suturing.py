@@ -102,6 +102,6 @@ def test_the_fuzzed_extreme_episode_on_the_paper_suture_throw_does_not_diverge(m
     the nearly massless thread shot through the bar, a node 35 mm in one iteration of its solve."""
     from conftest import assert_fuzz_event_does_not_diverge
 
-    event = {"id": "SutureGym/SutureThrowGoal-v2", "config": "suture_throw_paper.yaml", "action_mode": "wrench",
+    event = {"id": "SutureGym/SutureThrowGoal-v3", "config": "suture_throw_paper.yaml", "action_mode": "wrench",
              "strategy": "extreme", "seed": 329078599, "step": 112}  # fmt: skip
     assert_fuzz_event_does_not_diverge(monkeypatch, event)

@@ -102,7 +102,8 @@ def test_bad_arc_fields_are_named():
 # --- tasks on hand-made observables -------------------------------------------------------------------------
 
 
-def _obs(tip, *, entries=(), exits=(), force=0.0, gap=0.0, thread=0.0, punctured=False, damaged=False):
+def _obs(tip, *, entries=(), exits=(), force=0.0, gap=0.0, thread=0.0, punctured=False, damaged=False,
+         overlap=0.0):
     z3 = np.zeros(3)
     return Observables(
         time=0.0, tip_pos=np.asarray(tip, dtype=float), tip_dir=z3, needle_normal=z3, needle_center=z3, grip_pos=z3,
@@ -110,7 +111,7 @@ def _obs(tip, *, entries=(), exits=(), force=0.0, gap=0.0, thread=0.0, punctured
         new_entries=np.array(entries, dtype=float).reshape(-1, 3),
         new_exits=np.array(exits, dtype=float).reshape(-1, 3),
         tip_force=0.0, tissue_force=force, haptic_wrench=np.zeros(6), damaged=damaged, wound_gap=gap,
-        thread_through=thread, suture_samples=np.zeros((0, 3)), diverged=False,
+        wound_overlap=overlap, thread_through=thread, suture_samples=np.zeros((0, 3)), diverged=False,
     )
 
 

@@ -11,7 +11,7 @@ import scipy.sparse
 from suture_gym.sim.mesh import rest_shape, signed_volumes
 from suture_gym.sim.model import Control, TissueMaterial
 from suture_gym.sim.rest_system import SparseCholesky
-from suture_gym.sim.scenes import compression_block, suturing_pad
+from suture_gym.sim.scenes import PAPER_SOLVER, compression_block, suturing_pad
 from suture_gym.sim.solver import Solver
 from suture_gym.sim.tissue_energy import (
     incremental_potential,
@@ -265,7 +265,7 @@ def test_solves_are_deterministic(kind):
 @pytest.mark.parametrize("kind", ["quasi_newton", "vbd"])
 def test_stiff_pad_stays_at_rest_at_the_env_substep(kind):
     scene = suturing_pad(size=(0.008, 0.008, 0.008), cells=(4, 4, 4), material=TissueMaterial(1.0e6, 0.45))
-    solver, control = Solver(tissue_integrator=kind), Control()
+    solver, control = Solver(tissue_integrator=kind, iterations=1, max_speed=50.0), Control()
     for _ in range(200):
         solver.step(scene.model, scene.state, control, 1e-3)
     q = scene.state.tissue.particle_q
@@ -294,7 +294,7 @@ def test_later_sweeps_skip_the_solve_when_no_rows_moved_the_tissue():
     for sweeps in (1, 2):
         scene = suturing_pad(size=(0.008, 0.008, 0.004), cells=(4, 4, 2), material=TissueMaterial(1.0e5, 0.45))
         scene.state.tissue.particle_qd[:, 0] = 0.05  # a shear wave, so the solves have work to do
-        solver, control = Solver(tissue_integrator="quasi_newton", iterations=sweeps), Control()
+        solver, control = Solver(tissue_integrator="quasi_newton", iterations=sweeps, max_speed=50.0), Control()
         for _ in range(20):
             solver.step(scene.model, scene.state, control, 1e-3)
         runs[sweeps] = scene.state.tissue.particle_q.copy()
@@ -338,9 +338,9 @@ def test_row_compliance_is_the_substep_compliance_among_the_touched_vertices():
 
 def test_out_of_range_settings_raise_or_warn_naming_the_parameter():
     with pytest.raises(ValueError, match="tissue_integrator"):
-        Solver(tissue_integrator="explicit")
+        Solver(tissue_integrator="explicit", iterations=1, max_speed=50.0)
     with pytest.raises(ValueError, match="tissue_iterations"):
-        Solver(tissue_integrator="quasi_newton", tissue_iterations=0)
+        Solver(tissue_integrator="quasi_newton", tissue_iterations=0, iterations=1, max_speed=50.0)
     incompressible = suturing_pad(cells=(2, 2, 1), material=TissueMaterial(3.0e4, 0.5))
     with pytest.raises(ValueError, match="poisson_ratio"):
         QuasiNewton(incompressible.model.tissue, 1e-3)
@@ -358,7 +358,7 @@ def test_out_of_range_settings_raise_or_warn_naming_the_parameter():
 
 def test_axis_aligned_rollers_are_held_and_others_rejected():
     scene = compression_block(cells=2, material=TissueMaterial(1.0e4, 0.45))
-    solver, control = Solver(tissue_integrator="quasi_newton"), Control()
+    solver, control = Solver(tissue_integrator="quasi_newton", iterations=1, max_speed=50.0), Control()
     for _ in range(20):
         solver.step(scene.model, scene.state, control, 1e-3)
     tissue = scene.model.tissue
@@ -381,7 +381,8 @@ def _press(youngs: float, force: float, solver: Solver, seconds: float = 0.4):
 
     base = suturing_pad(size=(0.012, 0.012, 0.006), cells=(6, 6, 3), material=TissueMaterial(youngs, 0.45))
     needle = NeedleModel.from_shape()
-    params = CouplingParams(puncture_force=100.0)
+    params = CouplingParams(puncture_force=100.0, exit_puncture_force=0.0, cutting_force=0.0, tip_contact_radius=0.0,
+                            tear_force=4.0, needle_axial_friction=10.0)
     center = np.array([0.0063, 0.0063 + needle.shape.curvature_radius, 0.006 + params.resistance_eps])
     scene = add_strands(
         base,
@@ -411,7 +412,7 @@ def test_needle_load_reaches_the_implicit_tissue_and_its_base():
     the tip dents it by under a cell, and the pinned base carries the tissue's weight plus the push."""
     from suture_gym.measure.tissue_stiff import _elastic_gradient
 
-    scene, dent = _press(1.0e5, 1.0, Solver(tissue_integrator="quasi_newton", iterations=2))
+    scene, dent = _press(1.0e5, 1.0, Solver(tissue_integrator="quasi_newton", iterations=2, max_speed=50.0))
     state, tissue = scene.state, scene.model.tissue
     assert not state.diverged
     assert np.abs(state.tissue.particle_qd).max() < 1e-2
@@ -427,17 +428,17 @@ def test_needle_load_reaches_the_implicit_tissue_and_its_base():
 def test_a_state_can_change_integrator_between_steps_and_its_rows_follow():
     """The coupling rows' tissue side is chosen every substep: after implicit steps, an XPBD step of the same
     state uses the particles' inverse masses again (not the implicit compliance block of the last substep)."""
-    scene, _ = _press(1.0e5, 1.0, Solver(tissue_integrator="quasi_newton", iterations=2), seconds=0.05)
+    scene, _ = _press(1.0e5, 1.0, Solver(tissue_integrator="quasi_newton", iterations=2, max_speed=50.0), seconds=0.05)
     work = scene.state.work
     assert work.compliance is not work.diagonal_compliance
-    Solver().step(scene.model, scene.state, Control(), 1e-3)
+    PAPER_SOLVER.step(scene.model, scene.state, Control(), 1e-3)
     assert work.compliance is work.diagonal_compliance
 
 
 def test_a_sweep_whose_rows_moved_nothing_ends_the_substep():
     """With the needle clear of the pad the first sweep's rows move nothing: it does the suture's solve itself and
     the second sweep is skipped; pressed into the pad, the rows act in every substep and both sweeps run."""
-    solver = Solver(tissue_integrator="quasi_newton", iterations=2)
+    solver = Solver(tissue_integrator="quasi_newton", iterations=2, max_speed=50.0)
     clear, _ = _press(1.0e5, 0.0, solver, seconds=0.01)
     assert clear.state.work.tissue_integrator("quasi_newton", 1e-3).sweeps_done
     pressed, _ = _press(1.0e5, 1.0, solver, seconds=0.1)
@@ -470,7 +471,8 @@ def test_a_later_sweep_trusts_row_moves_within_the_large_step_to_the_rest_system
             monkeypatch.setattr(tissue_implicit.ImplicitTissue, "propagate_rows", propagate)
             monkeypatch.setattr(QuasiNewton, "rows_linear", lambda self, q: False)
         solves[0] = 0
-        _, depth = _press(1.0e5, force, Solver(tissue_integrator="quasi_newton", iterations=2), seconds=0.3)
+        _, depth = _press(1.0e5, force, Solver(tissue_integrator="quasi_newton", iterations=2, max_speed=50.0),
+                          seconds=0.3)
         runs[rule] = depth, solves[0]
     (depth, count), (every_depth, every_count) = runs["default"], runs["every move"]
     assert depth > 1e-4  # a real dent (0.1 mm and more)
@@ -511,7 +513,7 @@ def test_rows_linear_reads_the_rest_systems_response_to_the_rows_forces_as_linea
 def test_the_stiff_env_benchmark_changes_only_the_stiffness_for_its_soft_physics():
     from suture_gym.measure.tissue_stiff import V0_YOUNGS, _stiff_env
 
-    env_id = "SutureGym/NeedleInsert-v2"
+    env_id = "SutureGym/NeedleInsert-v3"
     configs = {physics: _stiff_env(env_id, physics)[0].unwrapped.config for physics in ("stiff", "soft", "v0")}
     stiff, soft, v0 = configs["stiff"], configs["soft"], configs["v0"]
     scale = V0_YOUNGS / stiff.tissue.youngs_modulus

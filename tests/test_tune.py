@@ -26,7 +26,7 @@ def test_a_study_is_stored_in_sqlite_and_resumed(tune, tmp_path, capsys):
     storage = f"sqlite:///{tmp_path}/nested/tune.db"
     assert tune.main(["--n-trials", "2", "--storage", storage, *TINY]) == 0
     first = json.loads(capsys.readouterr().out)
-    assert first["study_name"] == "ppo_NeedleInsert-v2" and first["trials"] == first["trials_this_run"] == 2
+    assert first["study_name"] == "ppo_NeedleInsert-v3" and first["trials"] == first["trials_this_run"] == 2
     assert first["complete"] + first["pruned"] == 2 and first["failed"] == 0
     best = first["best"]
     assert best["hyperparams"]["n_steps"] == 32 and "behaviour_cloning" not in best["hyperparams"]
@@ -35,7 +35,7 @@ def test_a_study_is_stored_in_sqlite_and_resumed(tune, tmp_path, capsys):
     assert tune.main(["--n-trials", "1", "--storage", storage, *TINY]) == 0
     second = json.loads(capsys.readouterr().out)
     assert (second["trials"], second["trials_this_run"]) == (3, 1)
-    trials = optuna.load_study(study_name="ppo_NeedleInsert-v2", storage=storage).trials
+    trials = optuna.load_study(study_name="ppo_NeedleInsert-v3", storage=storage).trials
     assert [t.number for t in trials] == [0, 1, 2]
     assert trials[2].params != trials[0].params  # the resumed sampler does not repeat the first trial
 

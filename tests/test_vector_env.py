@@ -15,12 +15,12 @@ N = 3
 
 
 def test_make_vector_env_builds_the_native_env_of_an_id():
-    env = make_vector_env("SutureGym/NeedleInsert-v2", N)
+    env = make_vector_env("SutureGym/NeedleInsert-v3", N)
     assert isinstance(env, SutureVectorEnv) and env.num_envs == N
     assert env.workers == default_workers(N) and 0 <= env.workers <= N  # parallel by default
     assert env.max_episode_steps == MAX_EPISODE_STEPS["needle_insert"]
     assert env.observation_space.shape == (N, *env.single_observation_space.shape)
-    goal = make_vector_env("SutureGym/SutureThrowGoal-v2", 2, max_episode_steps=7, workers=0)
+    goal = make_vector_env("SutureGym/SutureThrowGoal-v3", 2, max_episode_steps=7, workers=0)
     assert set(goal.single_observation_space.spaces) == {"observation", "achieved_goal", "desired_goal"}
     assert goal.max_episode_steps == 7
     env.close()
@@ -29,8 +29,8 @@ def test_make_vector_env_builds_the_native_env_of_an_id():
 
 @pytest.mark.parametrize(("env_id", "message"), [
     ("needle_insert", r"got 'needle_insert' \('needle_insert' is a task name; its env id is "
-                      r"'SutureGym/NeedleInsert-v2'\)"),
-    ("SutureGym/NeedleInsert-v9", r"SutureGym/NeedleInsert-v2.*SutureGym/NeedleInsertGoal-v2.*got "
+                      r"'SutureGym/NeedleInsert-v3'\)"),
+    ("SutureGym/NeedleInsert-v9", r"SutureGym/NeedleInsert-v3.*SutureGym/NeedleInsertGoal-v3.*got "
                                   r"'SutureGym/NeedleInsert-v9'"),
 ])
 def test_a_bad_env_id_is_named_with_the_valid_ones(env_id, message):
@@ -42,7 +42,7 @@ def test_make_vec_applies_wrappers_in_the_default_mode():
     def seven(env):
         return gym.wrappers.TransformReward(env, lambda r: 7.0)
 
-    envs = gym.make_vec("SutureGym/NeedleInsert-v2", num_envs=2, wrappers=[seven])
+    envs = gym.make_vec("SutureGym/NeedleInsert-v3", num_envs=2, wrappers=[seven])
     assert all(isinstance(e, gym.wrappers.TransformReward) for e in envs.envs)
     envs.reset(seed=0)
     _, rewards, *_ = envs.step(np.zeros((2, 6), np.float32))
@@ -147,7 +147,7 @@ def test_sb3_adapter_follows_vecenv_conventions():
     pytest.importorskip("stable_baselines3")
     from suture_gym.envs.sb3 import make_sb3_vec_env
 
-    env = make_sb3_vec_env("SutureGym/NeedleInsert-v2", 2, monitor=False, max_episode_steps=3, workers=2)
+    env = make_sb3_vec_env("SutureGym/NeedleInsert-v3", 2, monitor=False, max_episode_steps=3, workers=2)
     env.seed(5)
     obs = env.reset()
     assert obs.shape == (2, *env.observation_space.shape)
@@ -160,13 +160,13 @@ def test_sb3_adapter_follows_vecenv_conventions():
     assert env.get_attr("render_mode") == [None, None]
     assert env.env_method("scripted_action", -2.7, indices=[1])[0].shape == (6,)
     env.close()
-    default = make_sb3_vec_env("SutureGym/NeedleInsert-v2", 1, monitor=False)
+    default = make_sb3_vec_env("SutureGym/NeedleInsert-v3", 1, monitor=False)
     assert default.vector_env.max_episode_steps == MAX_EPISODE_STEPS["needle_insert"]  # the id's time limit
     default.close()
     with pytest.raises(ValueError, match=r"got 'needle_insert' \('needle_insert' is a task name"):
         make_sb3_vec_env("needle_insert", 1)
     with pytest.raises(ValueError, match=r"do not pass \['goal_conditioned'\]"):
-        make_sb3_vec_env("SutureGym/NeedleInsert-v2", 1, goal_conditioned=True)
+        make_sb3_vec_env("SutureGym/NeedleInsert-v3", 1, goal_conditioned=True)
 
 
 def test_sb3_ppo_and_her_smoke():
@@ -175,9 +175,9 @@ def test_sb3_ppo_and_her_smoke():
 
     from suture_gym.envs.sb3 import make_sb3_vec_env
 
-    env = make_sb3_vec_env("SutureGym/NeedleInsert-v2", 2, max_episode_steps=20)
+    env = make_sb3_vec_env("SutureGym/NeedleInsert-v3", 2, max_episode_steps=20)
     PPO("MlpPolicy", env, n_steps=16, batch_size=16, n_epochs=1, seed=0, device="cpu").learn(32)
-    goal_env = make_sb3_vec_env("SutureGym/NeedleInsertGoal-v2", 1, max_episode_steps=10)
+    goal_env = make_sb3_vec_env("SutureGym/NeedleInsertGoal-v3", 1, max_episode_steps=10)
     model = SAC("MultiInputPolicy", goal_env, replay_buffer_class=HerReplayBuffer, learning_starts=20,
                 replay_buffer_kwargs={"copy_info_dict": True}, batch_size=16, seed=0, device="cpu")
     model.learn(40)

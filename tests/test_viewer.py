@@ -16,7 +16,7 @@ from suture_gym.envs import ENV_IDS, GOAL_ENV_IDS
 from suture_gym.envs.config import load_config
 from suture_gym.render.live import EpisodeStatus, require_viser
 
-NEEDLE = "SutureGym/NeedleInsert-v2"
+NEEDLE = "SutureGym/NeedleInsert-v3"
 needs_viser = pytest.mark.skipif(importlib.util.find_spec("viser") is None,
                                  reason="the live viewer needs viser: pip install 'suture_gym[viewer]'")
 
@@ -278,12 +278,12 @@ def test_teleoperated_episode_is_recorded_and_cloned(tmp_path, action_mode):
         # down by about the proxy's 2 mm and moved along +x.
         assert grip[2] - grip0[2] < -1.0e-3
         assert grip[0] - grip0[0] > 2.0e-4
-        summary = app.save_demonstrations("suture_gym/NeedleInsert-v2/teleop-test-v0", root=tmp_path)
-        assert summary == {"episodes": 1, "steps": 80, "dataset_id": "suture_gym/NeedleInsert-v2/teleop-test-v0",
+        summary = app.save_demonstrations("suture_gym/NeedleInsert-v3/teleop-test-v0", root=tmp_path)
+        assert summary == {"episodes": 1, "steps": 80, "dataset_id": "suture_gym/NeedleInsert-v3/teleop-test-v0",
                            "root": str(tmp_path)}
     finally:
         app.close()
-    demos = load_minari_demos("suture_gym/NeedleInsert-v2/teleop-test-v0", root=tmp_path)
+    demos = load_minari_demos("suture_gym/NeedleInsert-v3/teleop-test-v0", root=tmp_path)
     assert demos["actions"].shape == (80, 6) and demos["observations"].shape[0] == 80
     assert demos["episode_starts"].tolist() == [0] and demos["episode_lengths"].tolist() == [80]
     assert demos["truncated"][-1] and not demos["terminated"].any()  # stopped by the demonstrator

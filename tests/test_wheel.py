@@ -44,7 +44,7 @@ for env_id in [*ENV_IDS, *GOAL_ENV_IDS]:
             env.reset()
     env.close()
     played[env_id] = 10
-env = gym.make("SutureGym/NeedleInsert-v2", config="needle_insert_deterministic")
+env = gym.make("SutureGym/NeedleInsert-v3", config="needle_insert_deterministic")
 env.reset(seed=0)
 env.close()
 print(json.dumps({"played": played, "configs": env_config_names()}))
@@ -110,14 +110,14 @@ def test_the_command_line_trains_evaluates_and_views(installed):
     python, cli, work, env = installed
     assert "train" in run([str(cli), "--help"], cwd=work, env=env).stdout
     assert "hanging_bar" in run([str(python), "-m", "suture_gym", "validate", "--list"], cwd=work, env=env).stdout
-    viewed = run([str(cli), "view", "--env", "SutureGym/NeedleInsert-v2", "--policy", "expert", "--steps", "20",
+    viewed = run([str(cli), "view", "--env", "SutureGym/NeedleInsert-v3", "--policy", "expert", "--steps", "20",
                   "--port", "0"], cwd=work, env=env)
     assert "20 env steps" in viewed.stderr
-    trained = json.loads(run([str(cli), "train", "--algo", "ppo", "--env", "SutureGym/NeedleInsert-v2",
+    trained = json.loads(run([str(cli), "train", "--algo", "ppo", "--env", "SutureGym/NeedleInsert-v3",
                               "--from-scratch", "--n-timesteps", "2048", "--eval-freq", "0", "--no-progress",
                               "--out", "runs"], cwd=work, env=env).stdout)
     model = Path(trained["model"])
     assert trained["timesteps"] >= 2048 and (work / model).is_file()
-    evaluated = json.loads(run([str(cli), "evaluate", "--env", "SutureGym/NeedleInsert-v2", "--policy", str(model),
+    evaluated = json.loads(run([str(cli), "evaluate", "--env", "SutureGym/NeedleInsert-v3", "--policy", str(model),
                                 "--episodes", "2", "--json", "--no-progress"], cwd=work, env=env).stdout)
     assert evaluated["episodes"] == 2 and 0.0 <= evaluated["success_rate"] <= 1.0

@@ -197,7 +197,7 @@ def test_the_fuzzed_bang_bang_episode_on_the_soft_fat_wall_does_not_diverge(monk
     their inverse masses: bang-bang wrenches drive the needle, in the soft fat, sideways through the wound."""
     from conftest import assert_fuzz_event_does_not_diverge
 
-    event = {"id": "SutureGym/WoundClosure-v2", "config": "abdominal_wall_wound_closure_soft_fat.yaml",
+    event = {"id": "SutureGym/WoundClosure-v3", "config": "abdominal_wall_wound_closure_soft_fat.yaml",
              "action_mode": "wrench", "strategy": "bang_bang", "seed": 889009434, "step": 41}  # fmt: skip
     assert_fuzz_event_does_not_diverge(monkeypatch, event)
 
@@ -208,7 +208,7 @@ def test_the_fuzzed_random_episode_on_the_soft_fat_wall_does_not_diverge(monkeyp
     corner of weight 1e-3, threw the tissue 37 m in one substep."""
     from conftest import assert_fuzz_event_does_not_diverge
 
-    event = {"id": "SutureGym/WoundClosureGoal-v2", "config": "abdominal_wall_wound_closure_soft_fat.yaml",
+    event = {"id": "SutureGym/WoundClosureGoal-v3", "config": "abdominal_wall_wound_closure_soft_fat.yaml",
              "action_mode": "wrench", "strategy": "random", "seed": 1639205032, "step": 148}  # fmt: skip
     assert_fuzz_event_does_not_diverge(monkeypatch, event)
 

@@ -63,7 +63,7 @@ def minari_root(root: str | Path | None) -> Iterator[Path]:
 
 def default_dataset_id(env_id: str, name: str = "expert") -> str:
     """Minari id ``suture_gym/<Task>-v<k>/<name>-v0`` of a dataset of ``env_id`` (the env id's version kept,
-    so datasets of different physics never share an id), e.g. ``suture_gym/NeedleInsert-v2/expert-v0``."""
+    so datasets of different physics never share an id), e.g. ``suture_gym/NeedleInsert-v3/expert-v0``."""
     return f"suture_gym/{env_id.split('/')[-1]}/{name}-v0"
 
 

@@ -76,15 +76,15 @@ class FeedbackExpert(ExpertPolicy):
         lead: how far ahead of the measured tip the command leads, rad (> 0). The clock expert lags its own
             command by a median 0.013 rad in SutureThrow (95th percentile 0.017 rad), more inside the tissue;
             at 0.015 rad the feedback expert turns through NeedleInsert's tissue at half the clock's speed and
-            runs out of time, at the default 0.02 rad it succeeds in 20/20 NeedleInsert-v2 episodes (391 steps
-            on average, the clock expert 462) and 10/10 SutureThrow-v2 ones (977 steps, the clock expert about
+            runs out of time, at the default 0.02 rad it succeeds in 20/20 NeedleInsert-v3 episodes (391 steps
+            on average, the clock expert 462) and 10/10 SutureThrow-v3 ones (977 steps, the clock expert about
             1,350).
         gain: the turn's command is the env's virtual coupling toward the commanded pose (``wrench`` mode) with
             its stiffnesses and dampings scaled by ``gain`` (in (0, 1]). At 1 the coupling saturates the torque
             at 0.008 rad of error and its damping alone at 0.67 rad/s: the label is the small difference of two
             large terms, so it swings with tiny changes of the state and a regression fits it poorly. A softer
-            coupling with a longer lead gives smoother labels (0.25 and 0.06 rad: 2/2 SutureThrow-v2 episodes of
-            about 410 steps; NeedleInsert-v2 in 150).
+            coupling with a longer lead gives smoother labels (0.25 and 0.06 rad: 2/2 SutureThrow-v3 episodes of
+            about 410 steps; NeedleInsert-v3 in 150).
     """
 
     def __init__(self, env, turn_rate: float | None = None, pull_speed: float | None = None,
@@ -309,7 +309,7 @@ def record_minari(env_id: str, episodes: int, dataset_id: str | None = None, see
 def main(argv: list[str] | None = None) -> int:
     parser = argparse.ArgumentParser(description="Record scripted-expert demonstrations to an .npz file or as a "
                                                  "Minari dataset.")
-    parser.add_argument("--env", required=True, help="env id, e.g. SutureGym/NeedleInsert-v2")
+    parser.add_argument("--env", required=True, help="env id, e.g. SutureGym/NeedleInsert-v3")
     parser.add_argument("--episodes", type=int, default=10)
     parser.add_argument("--seed", type=int, default=0, help="env seed of the first episode")
     where = parser.add_mutually_exclusive_group(required=True)

@@ -2,10 +2,10 @@
 
 Usage::
 
-    suture-gym evaluate --env SutureGym/NeedleInsert-v2 --policy random --episodes 20 --json
-    suture-gym evaluate --env SutureGym/NeedleInsert-v2 --policy runs/ppo_NeedleInsert_s0/best_model.zip
+    suture-gym evaluate --env SutureGym/NeedleInsert-v3 --policy random --episodes 20 --json
+    suture-gym evaluate --env SutureGym/NeedleInsert-v3 --policy runs/ppo_NeedleInsert_s0/best_model.zip
     suture-gym evaluate --policy elsewhere/model.zip --vecnormalize elsewhere/vecnormalize.pkl
-    suture-gym evaluate --env SutureGym/WoundClosure-v2 --policy expert --episodes 100 --workers 2
+    suture-gym evaluate --env SutureGym/WoundClosure-v3 --policy expert --episodes 100 --workers 2
 
 A saved model is evaluated with the VecNormalize statistics saved beside it (``final_vecnormalize.pkl``, or a
 checkpoint's ``model_vecnormalize_<N>_steps.pkl``) unless ``--vecnormalize`` names others; when there are none
@@ -28,7 +28,7 @@ from suture_gym.baselines.evaluation import SCRIPTED, evaluate
 def main(argv: list[str] | None = None) -> int:
     parser = argparse.ArgumentParser(prog="suture-gym evaluate", description=__doc__,
                                      formatter_class=argparse.RawDescriptionHelpFormatter)
-    parser.add_argument("--env", default="SutureGym/NeedleInsert-v2", help="Gymnasium env id")
+    parser.add_argument("--env", default="SutureGym/NeedleInsert-v3", help="Gymnasium env id")
     parser.add_argument("--policy", default="random",
                         help="'random', 'expert', 'feedback_expert' (DAgger's oracle) or a path to a model .zip")
     parser.add_argument("--episodes", type=int, default=20)

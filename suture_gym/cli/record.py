@@ -5,7 +5,7 @@ reports): the needle turned about its own centre along the planned arcs, then pu
 Usage::
 
     suture-gym record                      # all tasks -> docs/media/<task>.mp4
-    suture-gym record --env SutureGym/NeedleInsert-v2 --out /tmp/videos --seconds 3 --speed 0.5
+    suture-gym record --env SutureGym/NeedleInsert-v3 --out /tmp/videos --seconds 3 --speed 0.5
 
 Prints one JSON line per video: path, frames, simulated seconds, size in bytes, success and the episode's
 return. Frames are taken every ``--every`` env steps; the video plays at ``--speed`` times real time (fps =

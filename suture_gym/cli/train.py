@@ -2,11 +2,11 @@
 
 Usage::
 
-    suture-gym train --algo ppo --env SutureGym/NeedleInsert-v2 --seed 0
-    suture-gym train --algo sac --env SutureGym/NeedleInsert-v2 --n-timesteps 20000
-    suture-gym train --algo dagger --env SutureGym/SutureThrow-v2 --workers 2   # rollouts on 2 cores
-    suture-gym train --algo ppo --env SutureGym/NeedleInsert-v2 --from-scratch --n-timesteps 18700
-    suture-gym train --algo ppo --env SutureGym/NeedleInsert-v2 \
+    suture-gym train --algo ppo --env SutureGym/NeedleInsert-v3 --seed 0
+    suture-gym train --algo sac --env SutureGym/NeedleInsert-v3 --n-timesteps 20000
+    suture-gym train --algo dagger --env SutureGym/SutureThrow-v3 --workers 2   # rollouts on 2 cores
+    suture-gym train --algo ppo --env SutureGym/NeedleInsert-v3 --from-scratch --n-timesteps 18700
+    suture-gym train --algo ppo --env SutureGym/NeedleInsert-v3 \
         --resume runs/ppo_NeedleInsert_s0/checkpoints/model_50000_steps.zip
 
 Writes runs/<algo>_<Task>_s<seed>/ (config.yaml, TensorBoard logs, checkpoints, evaluations, best and final
@@ -28,7 +28,7 @@ def main(argv: list[str] | None = None) -> int:
                                      formatter_class=argparse.RawDescriptionHelpFormatter)
     parser.add_argument("--algo", default="ppo", choices=algorithms(),
                         help="algorithm (suture_gym/configs/agents/*.yml)")
-    parser.add_argument("--env", default="SutureGym/NeedleInsert-v2", help="Gymnasium env id")
+    parser.add_argument("--env", default="SutureGym/NeedleInsert-v3", help="Gymnasium env id")
     parser.add_argument("--seed", type=int, default=0)
     parser.add_argument("--n-timesteps", type=int, default=None, help="override the config's total env steps")
     parser.add_argument("--out", default="runs", help="parent directory of the run directory")

@@ -1,9 +1,9 @@
 """Gymnasium environments for suturing; importing this module registers the ids.
 
-* ``SutureGym/NeedleInsert-v2``: pierce at the marked entry, follow the planned arc, exit at the marked exit.
-* ``SutureGym/SutureThrow-v2``: one stitch across both wound edges, thread pulled through to a target length.
-* ``SutureGym/WoundClosure-v2``: several stitches and thread tension close the wound gap.
-* ``SutureGym/NeedleInsertGoal-v2``, ``SutureGym/SutureThrowGoal-v2``, ``SutureGym/WoundClosureGoal-v2``: the
+* ``SutureGym/NeedleInsert-v3``: pierce at the marked entry, follow the planned arc, exit at the marked exit.
+* ``SutureGym/SutureThrow-v3``: one stitch across both wound edges, thread pulled through to a target length.
+* ``SutureGym/WoundClosure-v3``: several stitches and thread tension close the wound gap.
+* ``SutureGym/NeedleInsertGoal-v3``, ``SutureGym/SutureThrowGoal-v3``, ``SutureGym/WoundClosureGoal-v3``: the
   goal-conditioned (HER) variants (Dict observations, batched ``compute_reward``).
 
 Each id is one line below: :func:`~suture_gym.envs.registry.register_task` derives the ids, the time limit

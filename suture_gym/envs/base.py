@@ -38,10 +38,12 @@ Rendering: ``render_mode="rgb_array"``: :meth:`~SutureEnv.render` returns an ima
 
 ``info`` at every step: ``is_success``, ``punctured``, ``tip_force`` (N), ``haptic_wrench`` (``(6,) float64``
 ``[N, N m]``: the reaction the tissue and thread exert on the needle, about the grip point, at the step's last
-substep; a haptic device renders its opposite; zeros if not finite), ``wound_gap`` (m, 0 without a
-wound), ``diverged``, ``cost`` (tissue-force cost >= 0, for safe RL), ``tear``, ``out_of_workspace``, ``missed``,
-``stitch`` and ``reward_<term>`` for each term of the task, with ``math.fsum`` of the terms equal to the reward
-exactly. ``reset`` adds ``params`` (the sampled episode parameters) and ``phase``.
+substep; a haptic device renders its opposite; zeros if not finite), ``wound_gap`` (m, >= 0, 0 without a
+wound), ``wound_overlap`` (m, how far the wound's faces passed through each other), ``diverged``, ``cost``
+(tissue-force cost >= 0, for safe RL), ``tear``, ``out_of_workspace``, ``missed``, ``crushed`` (the faces through
+each other by more than the limit: a failing end), ``stitch`` and ``reward_<term>`` for each term of the task,
+with ``math.fsum`` of the terms equal to the reward exactly. ``reset`` adds ``params`` (the sampled episode
+parameters) and ``phase``.
 """
 
 from __future__ import annotations
@@ -65,7 +67,15 @@ from suture_gym.envs.spaces import (
     observation_size,
     sensor_spaces,
 )
-from suture_gym.sim.quat import quat_conj, quat_from_rotation_vector, quat_mul, quat_normalize, quat_rotation_vector
+from suture_gym.sim.quat import (
+    quat_conj,
+    quat_from_rotation_vector,
+    quat_mul,
+    quat_normalize,
+    quat_rotate,
+    quat_rotation_vector,
+    quat_to_matrix,
+)
 from suture_gym.tasks import Observables, Task, TaskState
 
 #: Keys ``reset(options=...)`` accepts.
@@ -214,12 +224,16 @@ class SutureEnv(gym.Env):
         if self._ended:
             raise RuntimeError("the episode has ended (terminated): call reset() before step()")
         a = self._check_action(action)
-        if self.config.action.mode == "wrench":
-            self.sim.step(a * self._wrench_scale)
+        cfg = self.config.action
+        if cfg.mode == "wrench":
+            self.sim.step(self._world_wrench(a * self._wrench_scale))
         else:
-            cfg = self.config.action
-            self._target_pos = self._target_pos + a[:3] * cfg.max_translation
-            turn = quat_from_rotation_vector(a[3:] * cfg.max_rotation)
+            rot, centre = self._action_frame()
+            move = rot @ (a[:3] * cfg.max_translation)
+            turn = quat_from_rotation_vector(rot @ (a[3:] * cfg.max_rotation))
+            if centre is not None:  # turn the target about the needle's circle centre
+                self._target_pos = centre + quat_rotate(turn, self._target_pos - centre)
+            self._target_pos = self._target_pos + move
             self._target_quat = quat_normalize(quat_mul(turn, self._target_quat))
             self.sim.step_toward(self._target_pos, self._target_quat)
         sim_obs = self.sim.observables()
@@ -311,8 +325,11 @@ class SutureEnv(gym.Env):
             return self.action_for_wrench(self.sim.coupling_spring.wrench(
                 self.sim.model.needle, self.sim.state.needle, target_pos, target_quat))
         cfg = self.config.action
-        turn = quat_rotation_vector(quat_mul(target_quat, quat_conj(self._target_quat)))
-        action = np.concatenate([(target_pos - self._target_pos) / cfg.max_translation, turn / cfg.max_rotation])
+        rot, centre = self._action_frame()
+        turn = quat_mul(target_quat, quat_conj(self._target_quat))
+        turned = self._target_pos if centre is None else centre + quat_rotate(turn, self._target_pos - centre)
+        action = np.concatenate([rot.T @ (target_pos - turned) / cfg.max_translation,
+                                 rot.T @ quat_rotation_vector(turn) / cfg.max_rotation])
         return np.clip(action, -1.0, 1.0).astype(np.float32)
 
     def action_for_wrench(self, wrench: np.ndarray) -> np.ndarray:
@@ -323,7 +340,29 @@ class SutureEnv(gym.Env):
         wrench = np.asarray(wrench, dtype=np.float64)
         if wrench.shape != (6,):
             raise ValueError(f"wrench must have shape (6,), got {wrench.shape}")
-        return np.clip(wrench / self._wrench_scale, -1.0, 1.0).astype(np.float32)
+        rot, centre = self._action_frame()
+        force, torque = wrench[:3], wrench[3:]
+        if centre is not None:  # the same wrench about the circle's centre, in the needle's axes
+            torque = torque - np.cross(centre - self.sim.grip_pose()[0], force)
+            force, torque = rot.T @ force, rot.T @ torque
+        return np.clip(np.concatenate([force, torque]) / self._wrench_scale, -1.0, 1.0).astype(np.float32)
+
+    def _action_frame(self) -> tuple[np.ndarray, np.ndarray | None]:
+        """``(R (3, 3), centre (3,) m or None)``: the axes the action is read in (columns, world frame) and the
+        point it turns about (None: the grip point, world frame) for ``action.frame``."""
+        if self.config.action.frame == "world":
+            return np.eye(3), None
+        needle = self.sim.state.needle
+        rot = quat_to_matrix(needle.body_quat)
+        return rot, needle.body_pos + rot @ self.sim.model.needle.arc_center_body
+
+    def _world_wrench(self, wrench: np.ndarray) -> np.ndarray:
+        """The grip wrench ``(6,)`` [N, N m] (world frame, torque about the grip) of the action's ``wrench``."""
+        rot, centre = self._action_frame()
+        if centre is None:
+            return wrench
+        force, torque = rot @ wrench[:3], rot @ wrench[3:]
+        return np.concatenate([force, torque + np.cross(centre - self.sim.grip_pose()[0], force)])
 
     def scripted_action(self, tip_angle: float, stitch: int | None = None) -> np.ndarray:
         """:meth:`action_toward` the needle lying on stitch ``stitch``'s planned circle (default: the current
@@ -478,6 +517,8 @@ class SutureEnv(gym.Env):
             "tear": bool(outcome.tear) if outcome is not None else False,
             "out_of_workspace": bool(outcome.out_of_workspace) if outcome is not None else False,
             "missed": bool(outcome.missed) if outcome is not None else False,
+            "crushed": bool(outcome.crushed) if outcome is not None else False,
+            "wound_overlap": float(o.wound_overlap) if math.isfinite(o.wound_overlap) else 0.0,
             "stitch": int(self.task.state.stitch),
         }
         for name in terms:

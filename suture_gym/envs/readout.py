@@ -84,6 +84,7 @@ def observables(model: Model, state: State, entries: list, exits: list, faces: t
     if state.suture is not None and suture_samples:
         nodes = state.suture.node_pos
         samples = nodes[np.round(np.linspace(0, len(nodes) - 1, suture_samples)).astype(np.int64)].copy()
+    gap = mean_gap(state.tissue.particle_q, *faces)
     return Observables(
         time=float(state.time),
         tip_pos=pos + rot @ needle_model.tip_pos_body,
@@ -102,7 +103,8 @@ def observables(model: Model, state: State, entries: list, exits: list, faces: t
         tissue_force=float(coupling.max_force),
         haptic_wrench=state.needle_reaction.copy(),
         damaged=bool(coupling.damaged),
-        wound_gap=mean_gap(state.tissue.particle_q, *faces),
+        wound_gap=max(gap, 0.0),
+        wound_overlap=max(-gap, 0.0),
         thread_through=thread_through(model, state),
         suture_samples=samples,
         diverged=bool(state.diverged),

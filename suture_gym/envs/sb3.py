@@ -110,8 +110,8 @@ def make_sb3_vec_env(env_id: str, num_envs: int = 1, *, monitor: bool = True, **
     """An SB3 ``VecEnv`` of ``num_envs`` batched envs of the registered SutureGym id ``env_id``.
 
     Args:
-        env_id: a registered id, flat (``"SutureGym/NeedleInsert-v2"``) or goal-conditioned
-            (``"SutureGym/NeedleInsertGoal-v2"``, for HER); anything else raises ValueError listing the ids.
+        env_id: a registered id, flat (``"SutureGym/NeedleInsert-v3"``) or goal-conditioned
+            (``"SutureGym/NeedleInsertGoal-v3"``, for HER); anything else raises ValueError listing the ids.
         num_envs: N >= 1.
         monitor: wrap the result in SB3's ``VecMonitor`` (episode returns and lengths in ``info["episode"]``).
         **kwargs: go to :func:`~suture_gym.envs.vector.make_vector_env` (``config``, ``action_mode``,

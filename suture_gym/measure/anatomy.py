@@ -1,7 +1,7 @@
 """Benchmarks of the seed paper's anatomical scenes with the full suturing load: ``paper_abdominal_wall`` and
 ``paper_hand`` (paper Table 1: 38 and 21 fps with a 30-node needle and a 200-node suture).
 
-Each builds ``SutureGym/SutureThrow-v2`` on the scene and with the substep of its shipped config
+Each builds ``SutureGym/SutureThrow-v3`` on the scene and with the substep of its shipped config
 (``configs/envs/abdominal_wall_suture_throw.yaml``: three substeps of 5/3 ms an env step;
 ``configs/envs/hand_suture_throw.yaml``: two of 2.5 ms) with a 200-node, 20 cm thread, drives the scripted surgeon
 until the needle has come out at the far edge (through both wound faces), then times :data:`TIMED_STEPS` env steps
@@ -42,7 +42,7 @@ SCENES = {
 
 
 def _bench_scene(sections: dict) -> dict:
-    env = gym.make("SutureGym/SutureThrow-v2", config={**sections, "suture": SUTURE})
+    env = gym.make("SutureGym/SutureThrow-v3", config={**sections, "suture": SUTURE})
     unwrapped = env.unwrapped
     sim = unwrapped.sim
     surgeon = ScriptedSurgeon(env, turn_rate=2.0)

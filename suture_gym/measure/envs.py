@@ -119,7 +119,7 @@ def _register_env_benchmarks() -> None:
         benchmark(name)(lambda env_id=env_id: _bench_env(env_id))
     for suffix, config in OBSERVATION_BENCHMARKS.items():
         benchmark(f"env_NeedleInsert_{suffix}")(
-            lambda config=config: _bench_env("SutureGym/NeedleInsert-v2", config))
+            lambda config=config: _bench_env("SutureGym/NeedleInsert-v3", config))
 
 
 _register_env_benchmarks()
@@ -172,7 +172,7 @@ def _scripted_settings(env_id: str, turn_rate: float, pull_speed: float | None) 
 def check_needle_insert_scripted_accuracy() -> CheckResult:
     """The scripted surgeon's bite in NeedleInsert: the larger of the entry and exit errors (material points
     against the planned markers) must be within the task's access tolerance, and the episode must succeed."""
-    env_id, rate = "SutureGym/NeedleInsert-v2", 2.0
+    env_id, rate = "SutureGym/NeedleInsert-v3", 2.0
     run = _scripted_episode(env_id, rate, None)
     tolerance = gym.make(env_id).unwrapped.config.reward.access_tolerance
     measured = max(run["entry_error_m"], run["exit_error_m"])
@@ -186,7 +186,7 @@ def check_needle_insert_scripted_accuracy() -> CheckResult:
 def check_suture_throw_scripted_thread() -> CheckResult:
     """The scripted surgeon's stitch in SutureThrow: thread pulled through the far edge's exit (m), at least
     the task's target, with the episode successful (entry and exit within tolerance) and no divergence."""
-    env_id, rate, speed = "SutureGym/SutureThrow-v2", 1.0, 0.02
+    env_id, rate, speed = "SutureGym/SutureThrow-v3", 1.0, 0.02
     run = _scripted_episode(env_id, rate, speed)
     target = gym.make(env_id).unwrapped.config.plan.thread_target
     measured = run["thread_through_m"] if run["is_success"] and not run["diverged"] else -math.inf
@@ -277,7 +277,7 @@ def bench_vector_env() -> dict:
     cores = len(os.sched_getaffinity(0)) if hasattr(os, "sched_getaffinity") else os.cpu_count()
     return {
         "machine": f"{platform.processor() or platform.machine()}, {cores} cores, 1 thread per process",
-        "env_id": "SutureGym/NeedleInsert-v2",
+        "env_id": "SutureGym/NeedleInsert-v3",
         "rates": list(rates.values()),
         "scaling_1_to_2": rates[2]["env_steps_per_s"] / rates[1]["env_steps_per_s"],
         "cores": cores,

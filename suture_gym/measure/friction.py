@@ -36,7 +36,7 @@ from suture_gym.sim.scenes import Scene, add_strands, needle_circle_pose, suturi
 from suture_gym.tasks.suture_throw import SutureThrow
 
 FRICTION = 30.0  # N/m: 0.72 N over the pad's 24 mm (suture drag through tissue: 0.1-1 N over a stitch)
-SPEED = 0.02  # m/s: the scripted surgeon's needle draws the thread at about 0.8 cm/s (SutureThrow-v2, seed 0)
+SPEED = 0.02  # m/s: the scripted surgeon's needle draws the thread at about 0.8 cm/s (SutureThrow-v3, seed 0)
 NEEDLE_RADIUS = 1.0  # m: the needle's 26 mm arc is 8.5e-5 m off straight
 #: The holder: so heavy that the tissue cannot change its motion (a position-controlled robot).
 HOLDER = {"holder_mass": 1.0e3, "holder_inertia": 10.0}

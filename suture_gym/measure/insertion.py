@@ -35,7 +35,7 @@ from suture_gym.tasks.surgeon import TURN_RATE, circle_grip_target
 
 DT = 1.0e-3  # s, the environments' substep
 SUBSTEPS = 5  # substeps per env step: the drive's target is updated once per env step
-SOLVER = Solver(tissue_integrator="quasi_newton", iterations=2)
+SOLVER = Solver(tissue_integrator="quasi_newton", iterations=2, max_speed=50.0)
 PAD_MATERIAL = TissueMaterial(youngs_modulus=1.5e5, poisson_ratio=0.45)
 PAD_SIZE = (0.03, 0.03, 0.01)  # m
 CELL = 2.0e-3  # m
@@ -53,13 +53,14 @@ HOLDER = NeedleShape(holder_mass=1.0e3, holder_inertia=10.0)
 DRIVE_RATE = 100.0  # rad/s, natural frequency of the drive's spring-damper (critically damped)
 #: The force model at the scale of a silicone pad: a 1 N puncture, the exit at half of it (Frick et al. 2001
 #: measure the exit peak at about half the entry's), a cutting force of a fifth of the puncture force (Okamura
-#: et al. 2004 model it as constant per tip and tissue; not measured for this pad), the default needle friction
-#: (10 N/m) and the tip-contact patch (an effective radius of 1 mm for the tissue the tapered tip loads), chosen
+#: et al. 2004 model it as constant per tip and tissue; not measured for this pad), a needle friction of
+#: 10 N/m and the tip-contact patch (an effective radius of 1 mm for the tissue the tapered tip loads), chosen
 #: by ``pre_puncture_stiffness_vs_mesh``: with the rows on the implicit tissue's exact compliance, the point tip's
 #: slope is the mesh's (a point load on a coarser mesh is stiffer), the patch's is the tip's.
 TIP_CONTACT_RADIUS = 1.0e-3
 COUPLING = CouplingParams(
-    puncture_force=1.0, exit_puncture_force=0.5, cutting_force=0.2, tip_contact_radius=TIP_CONTACT_RADIUS
+    puncture_force=1.0, exit_puncture_force=0.5, cutting_force=0.2, tip_contact_radius=TIP_CONTACT_RADIUS,
+    tear_force=4.0, needle_axial_friction=10.0
 )
 #: A window after the puncture over which the force is not judged, s: the dent left by the entry springs back.
 SETTLE = 0.02

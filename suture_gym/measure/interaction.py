@@ -22,7 +22,7 @@ import numpy as np
 from suture_gym.measure.registry import CheckResult, benchmark, check
 from suture_gym.sim.bvh import build_bvh
 from suture_gym.sim.collision import TriangleSurface, signed_distance
-from suture_gym.sim.coupling import NODE_IN, ROW_PATH, CouplingParams, access_point
+from suture_gym.sim.coupling import NODE_IN, ROW_PATH, access_point
 from suture_gym.sim.model import Control, State
 from suture_gym.sim.needle import NeedleModel, VirtualCoupling
 from suture_gym.sim.quat import (
@@ -30,6 +30,8 @@ from suture_gym.sim.quat import (
 )
 from suture_gym.sim.rod import SutureParams
 from suture_gym.sim.scenes import (
+    PAPER_COUPLING,
+    PAPER_SOLVER,
     WOUND_ARC_AXIS,
     WOUND_ARC_U,
     Scene,
@@ -137,7 +139,7 @@ def run_stitch(
     Returns the wound gap at rest, at the end of the turn and at the end (m, :data:`GAP_WINDOW`), the number
     of substeps, whether it diverged and the phase timings (s).
     """
-    solver = solver or Solver()
+    solver = solver or PAPER_SOLVER
     control = Control()
     timings: dict = {}
     gap_rest = wound_gap(scene, **GAP_WINDOW)
@@ -240,7 +242,7 @@ def _stitch_run() -> tuple[dict, dict, dict]:
     """The default stitch with residual probes (run once, shared by the stitch checks)."""
     scene = two_bar_suturing()
     controller = StitchController.for_scene(scene)
-    solver = Solver()
+    solver = PAPER_SOLVER
     duration = controller.turn_time + STITCH_PULL_TIME
     probe = _StitchProbe()
     run = run_stitch(scene, controller, duration, solver, probe)
@@ -337,7 +339,7 @@ def knotted_stitch() -> dict:
     tissue), damage and divergence."""
     scene = two_bar_suturing(suture_tail_pinned=False, suture_knot_tail=KNOT_TAIL)
     controller = StitchController.for_scene(scene)
-    solver = Solver()
+    solver = PAPER_SOLVER
     duration = controller.turn_time + STITCH_PULL_TIME
     coupling = scene.model.coupling
     knot = coupling.knot_sigma
@@ -478,10 +480,10 @@ def bench_paper_cube() -> dict:
         centre_height=0.002,
         suture_params=SutureParams(),
         suture_direction=(0.0, -1.0, 0.3),
-        coupling_params=CouplingParams(puncture_force=BENCH_PUNCTURE_FORCE, needle_axial_friction=0.5),
+        coupling_params=replace(PAPER_COUPLING, puncture_force=BENCH_PUNCTURE_FORCE),
     )
     controller = StitchController.for_scene(scene, turn_rate=2.0)
-    solver = Solver()
+    solver = PAPER_SOLVER
     run_stitch(scene, controller, controller.turn_time)
     control = Control()
     samples = 300

@@ -26,6 +26,7 @@ from suture_gym.sim.quat import (
 )
 from suture_gym.sim.rod import SutureParams
 from suture_gym.sim.scenes import (
+    PAPER_SOLVER,
     WOUND_ARC_AXIS,
     WOUND_ARC_U,
     Scene,
@@ -66,7 +67,9 @@ def pad_with_needle(material: TissueMaterial | None = None, coupling_params: Cou
     default needle upright over its centre, the tip ``eps`` above the top face pointing down, and a free 2 cm
     suture straight up from the swage; ``coupling_params`` default to a 1 N puncture force."""
     base = suturing_pad(material=material)
-    params = coupling_params or CouplingParams(puncture_force=PAD_PUNCTURE_FORCE)
+    params = coupling_params or CouplingParams(
+        puncture_force=PAD_PUNCTURE_FORCE, exit_puncture_force=0.0, cutting_force=0.0, tip_contact_radius=0.0,
+        tear_force=4.0, needle_axial_friction=10.0)
     sx, sy, sz = base.settings["size_m"]
     radius = NeedleModel.from_shape().shape.curvature_radius
     return needle_over(base, np.array([0.5 * sx, 0.5 * sy + radius, sz + params.resistance_eps]), params)
@@ -109,7 +112,7 @@ def push_tip(
     grip = state.needle.body_pos + quat_to_matrix(state.needle.body_quat) @ needle.grip_pos_body
     quat = state.needle.body_quat.copy()
     tip_z0 = float((state.needle.body_pos + quat_to_matrix(quat) @ needle.tip_pos_body)[2])
-    solver, control = solver or Solver(), Control()
+    solver, control = solver or PAPER_SOLVER, Control()
     peak = dent = 0.0
     for k in range(int(round((ramp + hold) / dt))):
         push = np.array([0.0, 0.0, -force * min(1.0, k * dt / ramp)])
@@ -137,7 +140,8 @@ def _push(force: float, params: CouplingParams, youngs: float, dt: float = SWEEP
     """:func:`push_tip` on bar A of two 3 x 1.5 x 1.5 cm bars of ``youngs`` Pa with a 2 cm gap over which the
     rest of the needle hangs, ramped over :data:`SWEEP_RAMP` s and held :data:`SWEEP_HOLD` s."""
     base = two_bar_wound(
-        bar_size=(0.03, 0.015, 0.015), cells=(6, 3, 3), gap=SWEEP_GAP, material=TissueMaterial(youngs_modulus=youngs)
+        bar_size=(0.03, 0.015, 0.015), cells=(6, 3, 3), gap=SWEEP_GAP,
+        material=TissueMaterial(youngs_modulus=youngs, poisson_ratio=0.49),
     )
     scene = needle_over(base, SWEEP_ARC_CENTER, params)
     return push_tip(scene, force, dt, SWEEP_RAMP, SWEEP_HOLD)
@@ -154,7 +158,8 @@ def check_puncture_threshold_sweep() -> CheckResult:
     """Tip pushed straight onto the default 1 kPa tissue by forces from 0.5x to 2x the puncture threshold
     (0.05 N here), ramped over 0.5 s and held 0.4 s: it must pierce iff the push exceeds the threshold.
     Measured: the number of misclassified (or diverged) pushes, reference 0."""
-    params = CouplingParams(puncture_force=SWEEP_THRESHOLD)
+    params = CouplingParams(puncture_force=SWEEP_THRESHOLD, exit_puncture_force=0.0, cutting_force=0.0,
+                            tip_contact_radius=0.0, tear_force=4.0, needle_axial_friction=10.0)
     runs = [_push(f * params.puncture_force, params, SWEEP_YOUNGS) for f in SWEEP_FACTORS]
     return CheckResult(
         name="puncture_threshold_sweep",
@@ -264,7 +269,7 @@ def hold_wrench(scene: Scene, direction, axis, angle: float, dt: float = PAD_DT,
     target = state.needle.body_pos + rotation @ needle.grip_pos_body + 0.02 * direction / np.linalg.norm(direction)
     turn = quat_from_axis_angle(np.asarray(axis, dtype=np.float64), float(angle))
     target_quat = quat_normalize(quat_mul(turn, state.needle.body_quat))
-    solver, control = Solver(), Control()
+    solver, control = PAPER_SOLVER, Control()
     tissue_speed = 0.0
     steps = int(round(duration / dt))
     window = min(steps, int(round(SETTLE_WINDOW / dt)))
@@ -327,7 +332,7 @@ def check_max_wrench_hold() -> CheckResult:
             "settled_speed_m_s": SETTLED_SPEED,
             "settled_angular_speed_rad_s": SETTLED_ANGULAR_SPEED,
             "dt_s": PAD_DT,
-            "solver": asdict(Solver()),
+            "solver": asdict(PAPER_SOLVER),
         },
         details=runs,
     )

@@ -51,7 +51,8 @@ TOLERANCE = 1.0e-6  # default solver tolerance (Solver.rod_tolerance's default)
 #: m/s, the solver's divergence guard; the 45 degree pull of ``suture_stretch_pull`` whips the free end at
 #: ~110 m/s in its first substep, above the 50 m/s default, which would freeze the state as diverged.
 MAX_SPEED = 1.0e3
-SOLVER = Solver(max_speed=MAX_SPEED, rod_iterations=ITERATIONS, rod_tolerance=TOLERANCE)
+SOLVER = Solver(max_speed=MAX_SPEED, rod_iterations=ITERATIONS, rod_tolerance=TOLERANCE, iterations=1,
+                tissue_integrator="xpbd")
 
 
 def _solver_settings(dt: float) -> dict:

@@ -44,11 +44,13 @@ def _crushed_pad(supports: bool) -> dict:
     if not supports:
         tissue = replace(pad.model.tissue, support_normal=np.zeros((0, 3)), support_offset=np.zeros(0))
         pad.model = replace(pad.model, tissue=tissue)
-    params = CouplingParams(puncture_force=10.0 * BASE_PUSH_FORCE, tear_force=10.0 * BASE_PUSH_FORCE)
+    params = CouplingParams(puncture_force=10.0 * BASE_PUSH_FORCE, tear_force=10.0 * BASE_PUSH_FORCE,
+                            exit_puncture_force=0.0, cutting_force=0.0, tip_contact_radius=0.0,
+                            needle_axial_friction=10.0)
     sx, sy, sz = BASE_PAD_SIZE
     radius = NeedleModel.from_shape().shape.curvature_radius
     scene = needle_over(pad, np.array([0.5 * sx, 0.5 * sy + radius, sz + params.resistance_eps]), params)
-    solver = Solver(iterations=STIFF_ENV_SWEEPS, tissue_integrator=STIFF_INTEGRATOR)
+    solver = Solver(iterations=STIFF_ENV_SWEEPS, tissue_integrator=STIFF_INTEGRATOR, max_speed=50.0)
     record = push_tip(scene, BASE_PUSH_FORCE, rate["dt_s"], BASE_RAMP, BASE_HOLD, solver=solver)
     tissue, q = scene.model.tissue, scene.state.tissue.particle_q
     free = tissue.particle_inv_mass > 0

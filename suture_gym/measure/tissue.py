@@ -23,7 +23,15 @@ import numpy as np
 from suture_gym.measure.registry import CheckResult, benchmark, check
 from suture_gym.sim.mesh import signed_volumes
 from suture_gym.sim.model import Control, TissueMaterial
-from suture_gym.sim.scenes import Scene, cantilever, compression_block, hanging_bar, paper_cube
+from suture_gym.sim.scenes import (
+    PAPER_SOLVER,
+    PAPER_TISSUE,
+    Scene,
+    cantilever,
+    compression_block,
+    hanging_bar,
+    paper_cube,
+)
 from suture_gym.sim.solver import Solver
 
 GRAVITY = 9.81  # m/s^2
@@ -72,7 +80,7 @@ def _hanging_bar_run(nu: float, length: float, width: float, cells: tuple, young
     def elongation(s: Scene) -> float:
         return float(rest_z - s.state.tissue.particle_q[bottom, 2].mean())
 
-    run = _settle(scene, Solver(), dt, 1.0 / omega, elongation)
+    run = _settle(scene, PAPER_SOLVER, dt, 1.0 / omega, elongation)
     return {**run, "dt_s": dt, "damping_per_s": 2.0 * omega, "scene": scene.settings}
 
 
@@ -107,7 +115,7 @@ def check_hanging_bar() -> CheckResult:
             "courant": courant,
             "dt_s": main["dt_s"],
             "damping_per_s": main["damping_per_s"],
-            "solver": {"iterations": Solver().iterations},
+            "solver": {"iterations": PAPER_SOLVER.iterations},
             "settle_rtol": SETTLE_RTOL,
             "measured_quantity": "mean downward displacement of the free end face",
         },
@@ -152,7 +160,7 @@ def check_cantilever() -> CheckResult:
         def deflection(s: Scene, tip=tip, rest_z=rest_z) -> float:
             return float(rest_z - s.state.tissue.particle_q[tip, 2].mean())
 
-        run = _settle(scene, Solver(), dt, 1.0 / omega, deflection)
+        run = _settle(scene, PAPER_SOLVER, dt, 1.0 / omega, deflection)
         refinements.append(
             {
                 "cells": list(cells),
@@ -183,7 +191,7 @@ def check_cantilever() -> CheckResult:
             "gravity_m_s2": GRAVITY,
             "courant": courant,
             "damping_per_s": 2.0 * omega,
-            "solver": {"iterations": Solver().iterations},
+            "solver": {"iterations": PAPER_SOLVER.iterations},
             "settle_rtol": SETTLE_RTOL,
             "refinement_cells": [r["cells"] for r in refinements],
             "measured_quantity": "mean downward displacement of the tip face, finest mesh",
@@ -209,7 +217,7 @@ def check_volume_compression() -> CheckResult:
     substeps: a sweep per substep underestimates the hydrostatic stiffness unless ``(dt c / h_e)^2`` is small.
     """
     size, cells, stretch = 0.02, 4, 0.8
-    material = TissueMaterial()  # default tissue: E = 1 kPa, nu = 0.49
+    material = PAPER_TISSUE  # E = 1 kPa, nu = 0.49
     c = math.sqrt(material.youngs_modulus / material.density)
     omega = math.pi * c / size
     reference = material.lame_mu / material.hydrostatic_modulus * (1.0 - 1.0 / stretch)
@@ -223,7 +231,7 @@ def check_volume_compression() -> CheckResult:
         def volume_change(s: Scene, tets=tets, rest_volume=rest_volume) -> float:
             return float(signed_volumes(s.state.tissue.particle_q, tets).sum() / rest_volume - 1.0)
 
-        run = _settle(scene, Solver(), dt, 1.0 / omega, volume_change)
+        run = _settle(scene, PAPER_SOLVER, dt, 1.0 / omega, volume_change)
         side = scene.state.tissue.particle_q[scene.regions["side_x"], 0].mean() / size
         runs.append(
             {
@@ -255,7 +263,7 @@ def check_volume_compression() -> CheckResult:
             "damping_per_s": 2.0 * omega,
             "dt_s": final["dt_s"],
             "courant": final["courant"],
-            "solver": {"iterations": Solver().iterations},
+            "solver": {"iterations": PAPER_SOLVER.iterations},
             "settle_rtol": SETTLE_RTOL,
             "plates": "frictionless (roller supports), symmetry rollers on x=0, y=0",
             "measured_quantity": "V / V0 - 1 after settling",
@@ -270,7 +278,7 @@ def check_volume_compression() -> CheckResult:
 
 
 def _top_sag_run(dt: float) -> dict:
-    material = TissueMaterial()
+    material = PAPER_TISSUE
     # Fundamental mode of a layer of height H clamped at its base: quarter shear wave, (pi / 2) c_s / H.
     height = 0.03
     omega = 0.5 * math.pi * math.sqrt(material.lame_mu / material.density) / height
@@ -281,7 +289,7 @@ def _top_sag_run(dt: float) -> dict:
     def sag(s: Scene) -> float:
         return float(rest_z - s.state.tissue.particle_q[top, 2].mean())
 
-    run = _settle(scene, Solver(), dt, 1.0 / omega, sag)
+    run = _settle(scene, PAPER_SOLVER, dt, 1.0 / omega, sag)
     return {
         "dt_s": dt,
         "top_sag_m": run["value"],
@@ -314,7 +322,7 @@ def check_dt_independence() -> CheckResult:
             "scene": runs[1e-3]["scene"],
             "dt_pair_s": [1e-3, 2.5e-4],
             "damping_per_s": runs[1e-3]["damping_per_s"],
-            "solver": {"iterations": Solver().iterations},
+            "solver": {"iterations": PAPER_SOLVER.iterations},
             "settle_rtol": SETTLE_RTOL,
             "measured_quantity": "|sag(1 ms) - sag(0.25 ms)| / sag(0.25 ms), sag = mean top-face drop",
         },
@@ -336,11 +344,12 @@ def check_residual_decrease() -> CheckResult:
     """
     dt, warmup, sweeps = 1e-3, 50, 20
     scene = paper_cube()
-    solver, control = Solver(), Control()
+    solver, control = PAPER_SOLVER, Control()
     for _ in range(warmup):
         solver.step(scene.model, scene.state, control, dt)
     residuals = np.zeros(sweeps)
-    Solver(iterations=sweeps).step(scene.model, scene.state, control, dt, residuals=residuals)
+    Solver(iterations=sweeps, max_speed=50.0, tissue_integrator="xpbd").step(scene.model, scene.state, control, dt,
+                                                                             residuals=residuals)
     ratios = residuals[1:] / residuals[:-1]
     return CheckResult(
         name="residual_decrease",
@@ -407,4 +416,5 @@ def _bench_cube(material: TissueMaterial, solver: Solver) -> dict:
 @benchmark("paper_cube_tissue")
 def bench_paper_cube_tissue() -> dict:
     """Tissue alone at the paper's Table 1 scale (6840 tets), default solver, 1 ms substeps, one thread."""
-    return _bench_cube(TissueMaterial(), Solver())
+    return _bench_cube(PAPER_TISSUE, Solver(iterations=1, max_speed=50.0,
+                                                                                        tissue_integrator="xpbd"))

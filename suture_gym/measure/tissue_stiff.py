@@ -40,7 +40,8 @@ def bench_paper_cube_tissue_stiff() -> dict:
     """:func:`~suture_gym.measure.tissue.bench_paper_cube_tissue` at E = 100 kPa (nu 0.49) with the implicit
     integrator the issue-13 checks validate (:data:`STIFF_INTEGRATOR`, one iteration per substep): the XPBD
     split diverges there at 1 ms."""
-    return _bench_cube(TissueMaterial(youngs_modulus=1.0e5), Solver(tissue_integrator=STIFF_INTEGRATOR))
+    return _bench_cube(TissueMaterial(youngs_modulus=1.0e5, poisson_ratio=0.49),
+                       Solver(tissue_integrator=STIFF_INTEGRATOR, iterations=1, max_speed=50.0))
 
 
 def _env_rate() -> dict:
@@ -59,7 +60,7 @@ def _env_rate() -> dict:
 
 
 def _rate_solver(rate: dict, integrator: str) -> Solver:
-    return Solver(iterations=rate["iterations"], tissue_integrator=integrator)
+    return Solver(iterations=rate["iterations"], tissue_integrator=integrator, max_speed=50.0)
 
 
 def _env_steps(scene: Scene, solver: Solver, rate: dict, count: int) -> None:
@@ -583,7 +584,7 @@ def _stiff_env(env_id: str, physics: str):
 ENV_RATE_ROUNDS = 3
 #: Env and action seeds of a round's workload, :data:`~suture_gym.measure.envs.TIMED_STEPS` random steps each. More
 #: than one: the solver's work follows the trajectory the seed draws, and at 300 kPa one seed's is luck (on
-#: WoundClosure-v2, seeds 0-5 of the same code took 1.08-1.94 CHOLMOD solves a substep;
+#: WoundClosure-v3, seeds 0-5 of the same code took 1.08-1.94 CHOLMOD solves a substep;
 #: docs/notes/tissue_integrator.md).
 ENV_RATE_SEEDS = (0, 1, 2)
 

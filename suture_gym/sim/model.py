@@ -39,8 +39,11 @@ class TissueMaterial:
 
     Attributes:
         youngs_modulus: small-strain Young's modulus ``E``, Pa, within :data:`YOUNGS_MODULUS_LIMITS` (1 Pa to
-            100 MPa: generous bounds around the 1 kPa-1 MPa the simulator is validated for). Default 1 kPa (paper).
-        poisson_ratio: small-strain Poisson's ratio ``nu`` in ``[0, 0.5]``; 0.5 is incompressible.
+            100 MPa: generous bounds around the 1 kPa-1 MPa the simulator is validated for). Default 300 kPa: a
+            silicone suture-training pad (platinum-cure silicones of the pads' hardness, Shore 00-30 to 10A,
+            have E of about 0.1-0.5 MPa; skin is reported from tens of kPa in indentation to about 1 MPa in
+            tension). The seed paper's tissue is 1 kPa (:data:`suture_gym.sim.scenes.PAPER_TISSUE`).
+        poisson_ratio: small-strain Poisson's ratio ``nu`` in ``[0, 0.5]``; 0.5 is incompressible. Default 0.45.
         density: mass density, kg/m^3 (> 0).
         damping: mass-proportional velocity damping rate ``c``, 1/s (>= 0): free particle velocities decay
             as ``exp(-c t)``, a mode of angular frequency ``omega`` has damping ratio ``c / (2 omega)``.
@@ -54,8 +57,8 @@ class TissueMaterial:
     ``lambda = lame_lambda + mu = E nu / ((1 + nu)(1 - 2 nu)) + mu`` (``inf`` at ``nu = 0.5``).
     """
 
-    youngs_modulus: float = 1.0e3
-    poisson_ratio: float = 0.49
+    youngs_modulus: float = 3.0e5
+    poisson_ratio: float = 0.45
     density: float = 1000.0
     damping: float = 10.0
 

@@ -17,8 +17,18 @@ from suture_gym.sim.model import Model, State, TissueMaterial, TissueModel, Tiss
 from suture_gym.sim.needle import NeedleModel, NeedleShape, NeedleState
 from suture_gym.sim.quat import quat_from_two_vectors, quat_to_matrix
 from suture_gym.sim.rod import RodModel, RodState, StaticObstacles, SutureParams
+from suture_gym.sim.solver import Solver
 
 STANDARD_GRAVITY = 9.81  # m/s^2
+#: The seed paper's tissue (1 kPa, nearly incompressible): the default material of the builders below.
+PAPER_TISSUE = TissueMaterial(youngs_modulus=1.0e3, poisson_ratio=0.49)
+#: The seed paper's integrator: XPBD tissue, one sweep per small substep, 50 m/s before a state counts as diverged.
+PAPER_SOLVER = Solver(tissue_integrator="xpbd", iterations=1, max_speed=50.0)
+#: The strand-tissue interaction for the paper's 1 kPa tissue: 15 mN to puncture and 0.5 N/m of axial friction
+#: (1 N would indent this tissue by centimetres before piercing it), 4 N to tear, and the point tip of the paper
+#: (no tip patch, cutting or exit force): the default of :func:`two_bar_suturing`.
+PAPER_COUPLING = CouplingParams(puncture_force=0.015, needle_axial_friction=0.5, tear_force=4.0,
+                                exit_puncture_force=0.0, cutting_force=0.0, tip_contact_radius=0.0)
 
 
 @dataclass
@@ -106,7 +116,7 @@ def hanging_bar(
     Regions: ``top`` (pinned face), ``bottom`` (free end face ``z = -length``).
     """
     length, width = _check_positive("length", length), _check_positive("width", width)
-    material = material or TissueMaterial()
+    material = material or PAPER_TISSUE
     mesh = box_tet_grid((width, width, length), cells, origin=(0.0, 0.0, -length), scheme=scheme)
     z = mesh.vertices[:, 2]
     tol = 1e-9 * length
@@ -141,7 +151,7 @@ def cantilever(
     """
     length = _check_positive("length", length)
     thickness, width = _check_positive("thickness", thickness), _check_positive("width", width)
-    material = material or TissueMaterial()
+    material = material or PAPER_TISSUE
     mesh = box_tet_grid((length, width, thickness), cells, scheme=scheme)
     x = mesh.vertices[:, 0]
     tol = 1e-9 * length
@@ -177,7 +187,7 @@ def compression_block(
     size = _check_positive("size", size)
     if not (np.isfinite(stretch) and 0.0 < stretch <= 1.0):
         raise ValueError(f"stretch must lie in (0, 1], got {stretch!r}")
-    material = material or TissueMaterial()
+    material = material or PAPER_TISSUE
     mesh = box_tet_grid((size, size, size), (cells, cells, cells), scheme=scheme)
     v = mesh.vertices
     tol = 1e-9 * size
@@ -235,7 +245,7 @@ def two_bar_wound(
     width = _check_positive("bar width", bar_size[1])
     height = _check_positive("bar height", bar_size[2])
     gap = _check_positive("gap", gap)
-    material = material or TissueMaterial()
+    material = material or PAPER_TISSUE
     left = box_tet_grid((length, width, height), cells, scheme=scheme)
     right = box_tet_grid((length, width, height), cells, origin=(0.0, width + gap, 0.0), scheme=scheme)
     vertices = np.concatenate([left.vertices, right.vertices])
@@ -545,8 +555,8 @@ def two_bar_suturing(
     ``suture_direction`` with its tail held (``suture_tail_pinned``) and/or a stopper knot ``suture_knot_tail``
     m from its free end (:func:`add_strands`).
 
-    Defaults for the 1 kPa paper tissue: ``puncture_force = 0.015 N`` and ``needle_axial_friction = 0.5 N/m``
-    (1 N would indent this tissue by centimetres before piercing it; see :class:`CouplingParams`; at 0.05 N
+    Defaults for the 1 kPa paper tissue (:data:`PAPER_COUPLING`): ``puncture_force = 0.015 N`` and
+    ``needle_axial_friction = 0.5 N/m`` (see :class:`CouplingParams`; at 0.05 N
     the second bite dents bar B's wound face by about 6 mm while the needle turns, the axial load stays
     below 0.02 N and the tip slides off). The threshold counts the axial load on the tip, see
     :func:`~suture_gym.sim.coupling.coupling_finish`.
@@ -565,7 +575,7 @@ def two_bar_suturing(
         suture_direction=suture_direction,
         suture_tail_pinned=suture_tail_pinned,
         suture_knot_tail=suture_knot_tail,
-        coupling_params=coupling_params or CouplingParams(puncture_force=0.015, needle_axial_friction=0.5),
+        coupling_params=coupling_params or PAPER_COUPLING,
     )
     scene.settings["scene"] = "two_bar_suturing"
     scene.settings["arc_center_m"] = center.tolist()

@@ -271,25 +271,27 @@ class Solver:
     buffers in ``State.work``, made on a state's first step).
 
     Attributes:
-        iterations: Gauss-Seidel sweeps per substep (>= 1). One sweep per substep with small substeps is
-            the XPBD "small steps" regime the defaults are validated in.
+        iterations: sweeps per substep (>= 1): the tissue solve and the coupling rows alternate this often.
+            Default 2, what the environments use with the implicit tissue; one sweep per small substep is
+            the XPBD "small steps" regime.
         max_speed: speed, m/s, of any particle, suture node or needle point above which the state is flagged
-            as diverged (> 0).
+            as diverged (> 0). Default 20 m/s: a hundred times the fastest motion a task asks for.
         rod_iterations: most direct-solver iterations of the suture per sweep (>= 1).
         rod_tolerance: the suture's solve stops once its residual (strain-like, dimensionless) is below this
             (>= 0).
-        tissue_integrator: ``"xpbd"`` (the stable neo-Hookean XPBD split, the default) or one of the implicit-Euler
-            integrators of :mod:`suture_gym.sim.tissue_implicit` (``"quasi_newton"``, ``"vbd"``). With an implicit
+        tissue_integrator: ``"quasi_newton"`` (implicit Euler, the default: true to the material at 1 ms
+            substeps), ``"vbd"`` (the same step by vertex block descent; both in
+            :mod:`suture_gym.sim.tissue_implicit`) or ``"xpbd"`` (the stable neo-Hookean XPBD split). With an implicit
             integrator each sweep solves the tissue (``tissue_iterations`` inner iterations) instead of projecting
             the tets, and the coupling rows see the tissue's substep compliance.
         tissue_iterations: inner iterations of an implicit tissue integrator per sweep (>= 1; unused by XPBD).
     """
 
-    iterations: int = 1
-    max_speed: float = 50.0
+    iterations: int = 2
+    max_speed: float = 20.0
     rod_iterations: int = 8
     rod_tolerance: float = 1.0e-6
-    tissue_integrator: str = "xpbd"
+    tissue_integrator: str = "quasi_newton"
     tissue_iterations: int = 1
 
     def __post_init__(self) -> None:

@@ -85,7 +85,7 @@ CONVERGED_SPEED = 0.1
 #: (docs/tissue_integrator.md).
 ESTIMATED_STEP_LIMIT = CONVERGED_SPEED / 5.0
 #: Largest first step, in :attr:`ImplicitTissue.large_step` (a quarter of the shortest rest edge), whose energy
-#: estimate is trusted; a larger one always leaves the solve unconverged. On NeedleInsert-v2's random-action
+#: estimate is trusted; a larger one always leaves the solve unconverged. On NeedleInsert-v3's random-action
 #: workload at 300 kPa, first steps of 0.5-0.7 mm (2 mm cells) all ended within 0.1 mm of their solution, of
 #: 0.7-1.0 mm 24% did not, of 1.0-1.5 mm 79% (docs/tissue_integrator.md); the estimate flagged those.
 TRUSTED_FIRST_STEP = 2.0

@@ -1,7 +1,7 @@
 """Suturing tasks: small classes with named reward terms that read :class:`Observables` only.
 
-* :class:`NeedleInsert` (``SutureGym/NeedleInsert-v2``), :class:`SutureThrow` (``SutureGym/SutureThrow-v2``),
-  :class:`WoundClosure` (``SutureGym/WoundClosure-v2``), registered in :mod:`suture_gym.envs`
+* :class:`NeedleInsert` (``SutureGym/NeedleInsert-v3``), :class:`SutureThrow` (``SutureGym/SutureThrow-v3``),
+  :class:`WoundClosure` (``SutureGym/WoundClosure-v3``), registered in :mod:`suture_gym.envs`
   (:func:`~suture_gym.envs.registry.register_task`).
 * A task is the unit of extension: its reward terms (``term_<name>`` methods), config defaults (``CONFIG``),
   config check, episode initialisation (``initial_suture``, ``start_phase``) and termination are its own.

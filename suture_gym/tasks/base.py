@@ -32,18 +32,27 @@ Reward terms (each reported as ``info["reward_<name>"]``; a task uses a subset, 
   puncture after the stitch's final exit).
 * ``thread``: ``w_thread (min(L', T) - min(L, T)) / T`` with ``L`` the thread pulled through the current
   stitch's exit (m) and ``T = plan.thread_target``, counted after the stitch's final exit.
-* ``closure``: ``w_closure (g - g') / g0``: the reduction of the mean wound gap ``g`` (m) this step relative to
-  the gap at rest ``g0``.
+* ``closure``: ``w_closure (min(g, g0) - min(g', g0)) / g0``: the reduction of the mean wound gap ``g`` (m,
+  never negative) this step relative to the gap at rest ``g0``, counted below ``g0`` only, so an episode's
+  closure pays at most ``w_closure``.
 * ``success``: ``w_success`` once, on the step the task succeeds (never with the tissue torn).
 * ``failure``: ``-w_failure`` once, on the step an episode ends in failure: the tip leaves the workspace, the
   tissue tears (with ``termination.end_on_tear``), the task can no longer succeed (``termination.end_on_miss``:
   a stitch of a task that needs every stitch on the plan was entered or exited farther than ``access_tolerance``
-  from it), or the simulation diverges (:meth:`Task.diverged`). Without it the per-step penalties (``path``,
-  ``tissue_force``) make ending an episode early pay; it cannot pay once ``w_failure`` exceeds the discounted
-  sum of those penalties, ``w_path / (1 - gamma)`` for the path term.
+  from it), the wound's faces pass through each other by more than :data:`WOUND_OVERLAP_LIMIT` of the rest gap
+  (a crushed wound, ``info["crushed"]``), or the simulation diverges (:meth:`Task.diverged`). Without it the
+  per-step penalties (``path``, ``tissue_force``) make ending an episode early pay; it cannot pay once
+  ``w_failure`` exceeds the discounted sum of those penalties, ``w_path / (1 - gamma)`` for the path term.
+* ``forfeit``: on the step an episode ends in failure, minus what the event and increment terms (``entry``,
+  ``exit``, ``puncture``, ``thread``, ``closure``) paid over the episode, if that is positive; 0 otherwise.
+  With ``progress`` handing back its potential on a failing end, an episode that ends in failure returns at
+  most the sum of its penalties (``path``, ``failure``, ``tissue_force``, ``action``, unplanned punctures):
+  never more than 0, whatever the actions.
 * ``tissue_force``: ``-w_tissue_force cost`` with ``cost = max(0, F - safe_force) / (tear_force - safe_force)``
   and ``F`` the largest coupling force (N) of the step; ``info["cost"] = cost`` (>= 0) for safe RL.
 * ``action``: ``-w_action mean(a^2)`` of the action (clipped to the action box by the env).
+* ``time``: ``-w_time`` every step. The tasks set ``w_time`` so that the time limit's steps cost more than the
+  failure penalty: waiting out an episode never beats trying.
 
 The reward is ``math.fsum`` of the terms, so ``math.fsum(info["reward_<t>"] for t in TERMS) == reward`` holds
 exactly (``fsum`` is correctly rounded, whatever the order of the terms).
@@ -87,7 +96,10 @@ class Observables:
         tissue_force: largest coupling-constraint force in the last substep, N.
         haptic_wrench: ``(6,) float64`` wrench the constraints exert on the needle, ``[N, N m]`` about the grip.
         damaged: the tissue tore (a row holding a strand in it reached the tear force); sticky.
-        wound_gap: mean gap between the facing wound faces over their free upper half, m (0 without a wound).
+        wound_gap: mean gap between the facing wound faces over their free upper half, m (>= 0; 0 without a
+            wound or with the faces in contact or through each other).
+        wound_overlap: how far the facing wound faces have passed through each other, m (>= 0: minus the mean
+            gap where it is negative, else 0): a state the physics should not reach.
         thread_through: thread beyond the needle that has come out of the newest exit point, m (0 before).
         suture_samples: ``(S, 3) float64`` thread nodes sampled from the swage to the tail, m.
         diverged: the simulation produced non-finite or absurd values.
@@ -111,6 +123,7 @@ class Observables:
     haptic_wrench: np.ndarray
     damaged: bool
     wound_gap: float
+    wound_overlap: float
     thread_through: float
     suture_samples: np.ndarray
     diverged: bool
@@ -132,6 +145,8 @@ class TaskState:
         potential: ``Phi`` of the progress term at the last step.
         thread: thread pulled through the current stitch at the last step (capped at the target), m.
         gap: mean wound gap at the last step, m (0 without a wound).
+        banked: what the ``entry``, ``exit``, ``puncture``, ``thread`` and ``closure`` terms paid so far in the
+            episode (``forfeit`` hands it back on a failing end).
         succeeded: success has been reported.
     """
 
@@ -145,6 +160,7 @@ class TaskState:
     potential: float = 0.0
     thread: float = 0.0
     gap: float = 0.0
+    banked: float = 0.0
     succeeded: bool = False
 
     def copy(self) -> TaskState:
@@ -166,8 +182,10 @@ class TaskOutcome:
         out_of_workspace: the tip left the workspace box.
         missed: a stitch was entered or exited off the plan and the task needs every stitch on it
             (:attr:`Task.NEEDS_PLANNED_ACCESS`), so it can no longer succeed.
-        failed: the episode ends in failure: out of the workspace, a tear with ``end_on_tear``, or a miss with
-            ``end_on_miss``.
+        crushed: the wound's faces passed through each other by more than :data:`WOUND_OVERLAP_LIMIT` of the
+            rest gap.
+        failed: the episode ends in failure: out of the workspace, a tear with ``end_on_tear``, a miss with
+            ``end_on_miss``, or a crushed wound.
     """
 
     terms: dict
@@ -177,6 +195,7 @@ class TaskOutcome:
     tear: bool
     out_of_workspace: bool
     missed: bool
+    crushed: bool
     failed: bool
 
 
@@ -194,8 +213,8 @@ class StepContext:
         previous_gap: mean wound gap before the step, m.
         success: the task is achieved; ``newly_succeeded``: for the first time this step.
         cost: tissue-force cost (>= 0).
-        outside: the tip left the workspace; ``missed``: see :class:`TaskOutcome`; ``failed``: the episode ends
-            in failure.
+        outside: the tip left the workspace; ``missed``, ``crushed``: see :class:`TaskOutcome`; ``failed``: the
+            episode ends in failure.
     """
 
     obs: Observables
@@ -213,14 +232,25 @@ class StepContext:
     cost: float
     outside: bool
     missed: bool
+    crushed: bool
     failed: bool
 
+
+#: Terms whose episode total ``forfeit`` hands back on a failing end.
+BANKED_TERMS: tuple[str, ...] = ("entry", "exit", "puncture", "thread", "closure")
+#: Interpenetration of the wound's faces (mean, m) that ends an episode as a failure, as a fraction of the rest
+#: gap: faces cannot pass through each other, so the simulation has left what it models (a crushed wound).
+WOUND_OVERLAP_LIMIT = 0.25
 
 #: Scene kinds with a wound to suture.
 WOUND_KINDS: tuple[str, ...] = ("wound", *ANATOMY_KINDS)
 
 #: The built-in tasks' version history (:attr:`Task.VERSION_HISTORY`): what they share.
 BUILTIN_VERSION_HISTORY = (
+    "v3: an episode that ends in failure returns at most its penalties (the ``forfeit`` term hands back what the "
+    "event terms paid); the wound gap is never negative, faces pushed through each other end the episode "
+    "(``info['crushed']``), and closure pays at most its weight; observations, actions, physics and success are "
+    "v2's.",
     "v2: randomised by default (tissue stiffness x0.7-1.3, puncture force x0.8-1.25, wound gap x0.9-1.1, start "
     "pose +-0.5 mm and +-0.05 rad; ``randomization.enabled: false`` for the nominal episode) and the observation "
     "scaled to O(1) with finite bounds (``observation.scaled: false`` for raw SI values).",
@@ -231,8 +261,9 @@ BUILTIN_VERSION_HISTORY = (
 )
 #: The thread tasks' version history: :data:`BUILTIN_VERSION_HISTORY` with the thread's own changes added.
 THREAD_VERSION_HISTORY = (
-    BUILTIN_VERSION_HISTORY[0] + " The base under the wound is an obstacle of the thread (Coulomb friction 0.3).",
-) + BUILTIN_VERSION_HISTORY[1:]
+    BUILTIN_VERSION_HISTORY[0],
+    BUILTIN_VERSION_HISTORY[1] + " The base under the wound is an obstacle of the thread (Coulomb friction 0.3).",
+) + BUILTIN_VERSION_HISTORY[2:]
 
 
 class Task(ABC):
@@ -382,6 +413,8 @@ class Task(ABC):
         (:meth:`_advance`) first, then each term of ``TERMS`` from its ``term_<name>`` method."""
         ctx = self._advance(obs, action)
         values = {name: getattr(self, f"term_{name}")(ctx) for name in self.TERMS}
+        gained = math.fsum(values[name] for name in BANKED_TERMS if name in values)
+        self.state.banked = 0.0 if ctx.failed else self.state.banked + gained
         return TaskOutcome(
             terms=values,
             reward=math.fsum(values.values()),
@@ -390,24 +423,28 @@ class Task(ABC):
             tear=obs.damaged,
             out_of_workspace=ctx.outside,
             missed=ctx.missed,
+            crushed=ctx.crushed,
             failed=ctx.failed,
         )
 
     def diverged(self) -> TaskOutcome:
         """The outcome of a step on which the simulation diverged (non-finite or absurd state): a failing end.
 
-        Nothing can be measured on a diverged state, so every term is 0 except ``failure`` (``-w_failure``) and
-        ``progress`` (``-w_progress Phi``: the banked potential handed back, as on every failing end), for the
-        tasks that have them; the cost is 0.
+        Nothing can be measured on a diverged state, so every term is 0 except ``failure`` (``-w_failure``),
+        ``progress`` (``-w_progress Phi``: the banked potential handed back, as on every failing end) and
+        ``forfeit`` (what the event terms paid), for the tasks that have them; the cost is 0.
         """
         values = dict.fromkeys(self.TERMS, 0.0)
         if "failure" in values:
             values["failure"] = -self.reward.failure
         if "progress" in values:
             values["progress"] = -self.reward.progress * self.state.potential
+        if "forfeit" in values:
+            values["forfeit"] = -max(0.0, self.state.banked)
         self.state.potential = 0.0
+        self.state.banked = 0.0
         return TaskOutcome(terms=values, reward=math.fsum(values.values()), cost=0.0, success=False, tear=False,
-                           out_of_workspace=False, missed=False, failed=True)
+                           out_of_workspace=False, missed=False, crushed=False, failed=True)
 
     def _advance(self, obs: Observables, action: np.ndarray) -> StepContext:
         """Update the bookkeeping with ``obs`` (events, potential, thread, gap, stitch, success, end) and return
@@ -428,7 +465,8 @@ class Task(ABC):
         st.succeeded = st.succeeded or success
         outside = bool(np.any(obs.tip_pos < self.workspace[0]) or np.any(obs.tip_pos > self.workspace[1]))
         missed = self.missed()
-        failed = not success and self.failure(obs, outside, missed)
+        crushed = self.gap_rest > 0.0 and obs.wound_overlap > WOUND_OVERLAP_LIMIT * self.gap_rest
+        failed = not success and (crushed or self.failure(obs, outside, missed))
         if failed:
             # A failing end is absorbing and its shaping potential is 0 (Ng et al. 1999): the progress banked on
             # the way is handed back (term_progress), so ending an episode early can never pay.
@@ -439,7 +477,7 @@ class Task(ABC):
             previous_thread=previous_thread, previous_gap=previous_gap, success=success,
             newly_succeeded=newly_succeeded,
             cost=max(0.0, obs.tissue_force - w.safe_force) / (self.tear_force - w.safe_force),
-            outside=outside, missed=missed, failed=failed,
+            outside=outside, missed=missed, crushed=crushed, failed=failed,
         )
 
     # ------------------------------------------------------------------------------------------------------
@@ -476,8 +514,9 @@ class Task(ABC):
         return self.reward.thread * (ctx.thread - ctx.previous_thread) / self.thread_target
 
     def term_closure(self, ctx: StepContext) -> float:
-        """``w_closure (g - g') / g0``, ``g`` the mean wound gap (m), ``g0`` the gap at rest."""
-        return self.reward.closure * (ctx.previous_gap - ctx.obs.wound_gap) / self.gap_rest
+        """``w_closure (min(g, g0) - min(g', g0)) / g0``, ``g`` the mean wound gap (m), ``g0`` the gap at rest."""
+        g0 = self.gap_rest
+        return self.reward.closure * (min(ctx.previous_gap, g0) - min(ctx.obs.wound_gap, g0)) / g0
 
     def term_success(self, ctx: StepContext) -> float:
         """``w_success`` once, on the step the task succeeds."""
@@ -487,6 +526,14 @@ class Task(ABC):
         """``-w_failure`` once, on the step the episode ends in failure."""
         return -self.reward.failure if ctx.failed else 0.0
 
+    def term_forfeit(self, ctx: StepContext) -> float:
+        """On a failing end, minus what the :data:`BANKED_TERMS` paid over the episode (this step's included) if
+        positive; else 0."""
+        if not ctx.failed:
+            return 0.0
+        gained = math.fsum(getattr(self, f"term_{name}")(ctx) for name in BANKED_TERMS if name in self.TERMS)
+        return -max(0.0, self.state.banked + gained)
+
     def term_tissue_force(self, ctx: StepContext) -> float:
         """``-w_tissue_force cost``, ``cost = max(0, F - safe_force) / (tear_force - safe_force)``, ``F`` in N."""
         return -self.reward.tissue_force * ctx.cost
@@ -494,6 +541,10 @@ class Task(ABC):
     def term_action(self, ctx: StepContext) -> float:
         """``-w_action mean(a^2)`` of the action (clipped to the box)."""
         return -self.reward.action * float(np.mean(np.square(ctx.action)))
+
+    def term_time(self, ctx: StepContext) -> float:
+        """``-w_time`` every step."""
+        return -self.reward.time
 
     def failure(self, obs: Observables, outside: bool, missed: bool) -> bool:
         """Termination hook: whether the step that led to ``obs`` ends the episode as a failure (asked only when

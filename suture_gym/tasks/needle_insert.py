@@ -1,4 +1,4 @@
-"""``SutureGym/NeedleInsert-v2``: pierce at the marked entry, follow the planned arc, exit at the marked exit."""
+"""``SutureGym/NeedleInsert-v3``: pierce at the marked entry, follow the planned arc, exit at the marked exit."""
 
 from __future__ import annotations
 
@@ -21,12 +21,13 @@ class NeedleInsert(Task):
     """
 
     NAME = "needle_insert"
-    ENV_ID = "SutureGym/NeedleInsert-v2"
-    GOAL_ENV_ID = "SutureGym/NeedleInsertGoal-v2"
+    ENV_ID = "SutureGym/NeedleInsert-v3"
+    GOAL_ENV_ID = "SutureGym/NeedleInsertGoal-v3"
     MAX_EPISODE_STEPS = 600
     VERSION_HISTORY = BUILTIN_VERSION_HISTORY
     CONFIG = {}
-    TERMS = ("path", "progress", "entry", "exit", "puncture", "success", "failure", "tissue_force", "action")
+    TERMS = ("path", "progress", "entry", "exit", "puncture", "success", "failure", "forfeit", "tissue_force",
+             "action", "time")
     PHASES = ("approach", "inserted")
     NEEDS_PLANNED_ACCESS = True
     GOAL_SIZE = 8

@@ -1,4 +1,4 @@
-"""``SutureGym/SutureThrow-v2``: one full stitch across both wound edges, thread pulled through to a target."""
+"""``SutureGym/SutureThrow-v3``: one full stitch across both wound edges, thread pulled through to a target."""
 
 from __future__ import annotations
 
@@ -21,8 +21,8 @@ class SutureThrow(Task):
     """
 
     NAME = "suture_throw"
-    ENV_ID = "SutureGym/SutureThrow-v2"
-    GOAL_ENV_ID = "SutureGym/SutureThrowGoal-v2"
+    ENV_ID = "SutureGym/SutureThrow-v3"
+    GOAL_ENV_ID = "SutureGym/SutureThrowGoal-v3"
     MAX_EPISODE_STEPS = 2000
     VERSION_HISTORY = THREAD_VERSION_HISTORY
     CONFIG = {
@@ -33,8 +33,8 @@ class SutureThrow(Task):
     }
     SCENE_KINDS = WOUND_KINDS
     NEEDS_THREAD = True
-    TERMS = ("path", "progress", "entry", "exit", "puncture", "thread", "success", "failure", "tissue_force",
-             "action")
+    TERMS = ("path", "progress", "entry", "exit", "puncture", "thread", "success", "failure", "forfeit",
+             "tissue_force", "action", "time")
     PHASES = ("approach", "inserted", "exited")
     NEEDS_PLANNED_ACCESS = True
     GOAL_SIZE = 9

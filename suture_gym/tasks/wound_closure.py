@@ -1,4 +1,4 @@
-"""``SutureGym/WoundClosure-v2``: several stitches and thread tension close the wound gap."""
+"""``SutureGym/WoundClosure-v3``: several stitches and thread tension close the wound gap."""
 
 from __future__ import annotations
 
@@ -28,8 +28,8 @@ class WoundClosure(Task):
     """
 
     NAME = "wound_closure"
-    ENV_ID = "SutureGym/WoundClosure-v2"
-    GOAL_ENV_ID = "SutureGym/WoundClosureGoal-v2"
+    ENV_ID = "SutureGym/WoundClosure-v3"
+    GOAL_ENV_ID = "SutureGym/WoundClosureGoal-v3"
     MAX_EPISODE_STEPS = 5000
     VERSION_HISTORY = THREAD_VERSION_HISTORY
     CONFIG = {
@@ -46,7 +46,7 @@ class WoundClosure(Task):
     SURGEON_TURN_RATE = 2.0
     SURGEON_PULL_SPEED = 0.04
     TERMS = ("path", "progress", "entry", "exit", "puncture", "thread", "closure", "success", "failure",
-             "tissue_force", "action")
+             "forfeit", "tissue_force", "action", "time")
     PHASES = ("approach", "first_bite")
     GOAL_SIZE = 1
     GOAL_LAYOUT = (("wound_gap", "m"),)

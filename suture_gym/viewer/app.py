@@ -47,7 +47,7 @@ class ViewerApp:
     """One env on a viser page, stepped by a policy or the teleoperator (module docstring).
 
     Args:
-        env_id: a registered id (``SutureGym/NeedleInsert-v2``, ...).
+        env_id: a registered id (``SutureGym/NeedleInsert-v3``, ...).
         config: env config (a YAML path or a mapping), as ``gym.make(env_id, config=...)``.
         policy: ``teleop``, ``expert``, ``random`` or the path of a saved SB3 model.
         action_mode: None (the config's) or ``wrench`` / ``pose_delta``.
@@ -353,7 +353,7 @@ def main(argv: list[str] | None = None) -> int:
     parser = argparse.ArgumentParser(prog="python -m suture_gym.viewer",
                                      description="Live 3D view of a SutureGym env in the browser (viser): policy "
                                                  "playback, teleoperation, demonstrations as Minari datasets.")
-    parser.add_argument("--env", required=True, help="env id, e.g. SutureGym/NeedleInsert-v2")
+    parser.add_argument("--env", required=True, help="env id, e.g. SutureGym/NeedleInsert-v3")
     parser.add_argument("--config", default=None,
                         help="env config: a shipped config's name (suture_gym/configs/envs/) or a YAML path")
     parser.add_argument("--policy", default=TELEOP, help="teleop (default), expert, random or a saved model .zip")

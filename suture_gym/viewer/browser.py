@@ -118,7 +118,7 @@ def changed_pixels(a: np.ndarray, b: np.ndarray, threshold: int = 24) -> int:
 def main(argv: list[str] | None = None) -> int:
     parser = argparse.ArgumentParser(prog="python -m suture_gym.viewer.browser", description=__doc__,
                                      formatter_class=argparse.RawDescriptionHelpFormatter)
-    parser.add_argument("--env", default="SutureGym/WoundClosure-v2")
+    parser.add_argument("--env", default="SutureGym/WoundClosure-v3")
     parser.add_argument("--policy", default="expert")
     parser.add_argument("--steps", type=int, default=1300, help="env steps before the screenshot")
     parser.add_argument("--width", type=int, default=1100, help="window width, px")

@@ -40,9 +40,10 @@ class CouplingParams:
     """Parameters of the strand-tissue interaction (SI units).
 
     Attributes:
-        puncture_force: force, N, the tip must exert on the surface to puncture it (default 1.0 N; measured
-            suture-needle puncture forces are 0.6-0.9 N in cartilage). Scale it with the tissue: 1 N indents a
-            1 kPa tissue by several centimetres before it is reached.
+        puncture_force: force, N, the tip must exert on the surface to puncture it. Default 0.5 N, for the
+            default 300 kPa tissue (measured suture-needle punctures: 0.5-2 N). Scale it with the tissue (the
+            dent a force makes goes as ``F / E``): 1 N indents a 1 kPa tissue by several centimetres before it
+            is reached; the seed paper's 1 kPa scenes use 15 mN (:data:`suture_gym.sim.scenes.PAPER_COUPLING`).
         tip_length: m; the tip force is the contact force of the needle nodes within this arc length of the
             point (the tapered tip: the default 2 mm spans the first three of the default needle's 30 nodes,
             which share the load once the dent is deeper than the node spacing).
@@ -53,8 +54,9 @@ class CouplingParams:
             ``h = 1.7 mm`` (the paper's 1.2 / 1.7 cm scaled to a 26 mm needle): a bite through one 30 mm wound
             edge of the two-bar scene with the default half-circle needle is 10-14 mm of path, 6-11 nodes.
         tear_force: N, the largest force one node-path or node-access row transmits: beyond it the tissue gives
-            way and the strand cuts through (tear-through forces of sutures are 3-4 N). A coupling force
-            reaching it sets the sticky damage flag.
+            way and the strand cuts through (tear-through forces of sutures are 3-4 N in soft tissue; the
+            default 10 N is twenty times the default puncture force). A coupling force reaching it sets the
+            sticky damage flag.
         tip_friction: Coulomb friction coefficient of the tip on the surface before puncture (>= 0): the sharp
             tip engages the surface point it first touches (the *anchor*) and slides only while the tangential
             force exceeds ``tip_friction`` times the normal force.
@@ -65,6 +67,7 @@ class CouplingParams:
             the needle's motion along its path relative to the tissue (0 disables it). Coulomb-like: a constant
             force per length while it slides (no dependence on speed or on the normal load, which a constant
             radial pressure of the tissue on the wire makes constant too), any smaller force while it sticks.
+            Default 150 N/m, for the default tissue.
         suture_axial_friction: kinetic friction force per metre of thread inside the tissue, N/m, resisting the
             thread's slide along its paths relative to the tissue, Coulomb-like as ``needle_axial_friction``
             (0, the default: the thread slides freely). Solved as rows of the rod's direct solve
@@ -72,15 +75,15 @@ class CouplingParams:
         exit_puncture_force: N; while the tip is inside and heads out through the surface, the surface holds
             it (the *exit anchor*, a contact from the inside with ``tip_friction``) until the force the tip
             exerts on it reaches this threshold, the second peak of an insertion (Frick et al. 2001 measure it
-            at about half the entry's). 0 (the default): the tip leaves with no threshold.
+            at about half the entry's: the default 0.25 N). 0: the tip leaves with no threshold.
         cutting_force: N; while a puncture is open, the force that resists the tip's advance through the tissue
             along its direction (Okamura et al. 2004: constant for a given tip and tissue); zero while the tip
-            does not advance. 0 (the default) disables it.
+            does not advance. Default 0.1 N, a fifth of the puncture force; 0 disables it.
         tip_contact_radius: m; before puncture the tip loads the tissue as a flat punch of this radius: its
             contact force is spread over the surface patch within ``max(tip_contact_radius,
             TIP_PATCH_CELLS x`` the mean surface edge length ``)`` of its anchor, in series with the local
             half-space compliance the mesh cannot resolve (:func:`tip_series_compliance`), so the force-depth
-            slope before puncture is set by the tip and the tissue, not by the cell size. 0 (the default): the
+            slope before puncture is set by the tip and the tissue, not by the cell size (default 1 mm). 0: the
             tip is one point of its anchor triangle and the needle nodes within ``tip_length`` share the load
             through their own contact rows. Measured (``pre_puncture_stiffness_vs_mesh``, 150 kPa, implicit
             tissue): the point tip's slope changes by 15% from 2 mm to 1 mm cells, this model's (1 mm) by 47%.
@@ -95,19 +98,19 @@ class CouplingParams:
         max_path_nodes: capacity of the path-node buffer shared by all paths; growth stops (overflow) when full.
     """
 
-    puncture_force: float = 1.0
+    puncture_force: float = 0.5
     tip_length: float = 2.0e-3
     resistance_eps: float = 3.0e-4
     path_spacing_min: float = 1.2e-3
     path_spacing_max: float = 1.7e-3
-    tear_force: float = 4.0
+    tear_force: float = 10.0
     tip_friction: float = 1.0
     depenetration_speed: float = 0.1
-    needle_axial_friction: float = 10.0
+    needle_axial_friction: float = 150.0
     suture_axial_friction: float = 0.0
-    exit_puncture_force: float = 0.0
-    cutting_force: float = 0.0
-    tip_contact_radius: float = 0.0
+    exit_puncture_force: float = 0.25
+    cutting_force: float = 0.1
+    tip_contact_radius: float = 1.0e-3
     contact_margin: float = 1.0e-3
     track_window: float = 2.0e-3
     broad_phase_margin: float = 5.0e-3
