@@ -28,7 +28,7 @@ speed above ``solver.max_speed``; or a non-finite observation or reward): a fail
 ``truncated`` at the time limit, which comes from registration (``TimeLimit``). Once the env has ended an
 episode (``terminated``), ``step`` raises RuntimeError until ``reset``; Gymnasium's
 ``TimeLimit`` does not stop a step after its own truncation. ``render`` before the first ``reset`` raises
-RuntimeError too.
+RuntimeError too, and so do ``reset``, ``step`` and the snapshots after ``close``.
 
 Rendering: ``render_mode="rgb_array"``: :meth:`~SutureEnv.render` returns an image from the offline renderer
 (:mod:`suture_gym.render`). ``render_mode="human"``: a live 3D view in the browser
@@ -93,6 +93,13 @@ class EnvState:
     last_observation: Any
     rng_state: dict
     ended: bool
+
+
+def _layout(obs):
+    """The shapes of an observation or observation space: an array's shape, or a dict's keys with theirs."""
+    if isinstance(obs, (dict, gym.spaces.Dict)):
+        return {k: _layout(v) for k, v in obs.items()}
+    return tuple(obs.shape) if isinstance(obs, gym.spaces.Space) else tuple(np.shape(obs))
 
 
 def _copy_obs(obs):
@@ -164,6 +171,7 @@ class SutureEnv(gym.Env):
         self._ended = False
         self._renderer = None
         self._live = None
+        self._closed = False
         #: (seed, steps, return, last info, ended) of the episode, for the live view (``render_mode="human"``).
         self._live_episode: tuple = (None, 0, 0.0, {}, False)
 
@@ -178,6 +186,7 @@ class SutureEnv(gym.Env):
         procedure for curricula; ``params`` (mapping) overrides sampled :class:`EpisodeParams` fields.
         Unknown options raise ValueError.
         """
+        self._check_open()
         super().reset(seed=seed)
         options = {} if options is None else options
         if not isinstance(options, dict):
@@ -209,6 +218,7 @@ class SutureEnv(gym.Env):
 
     def step(self, action):
         """Apply ``action`` for one control period (``solver.substeps`` substeps) and score it."""
+        self._check_open()
         if self._last_obs is None:
             raise RuntimeError("call reset() before step()")
         if self._ended:
@@ -266,6 +276,9 @@ class SutureEnv(gym.Env):
         return self._renderer.render(self.view_frame())
 
     def close(self) -> None:
+        """Release the renderer and the live view; ``reset``, ``step``, ``get_state`` and ``set_state`` raise
+        RuntimeError afterwards (closing again is allowed)."""
+        self._closed = True
         self._renderer = None
         if self._live is not None:
             self._live.close()
@@ -340,6 +353,7 @@ class SutureEnv(gym.Env):
     def get_state(self) -> EnvState:
         """A deep snapshot of the episode (physics, task bookkeeping, holder target, last observation and the
         random generator). Wrappers' own counters (``TimeLimit``'s elapsed steps) are not part of it."""
+        self._check_open()
         if self._last_obs is None:
             raise RuntimeError("call reset() before get_state()")
         return EnvState(
@@ -353,9 +367,18 @@ class SutureEnv(gym.Env):
         )
 
     def set_state(self, state: EnvState) -> None:
-        """Restore a :meth:`get_state` snapshot; replaying the same actions then gives identical results."""
+        """Restore a :meth:`get_state` snapshot; replaying the same actions then gives identical results.
+
+        Raises:
+            ValueError: ``state`` is not an :class:`EnvState`, or is one of another task, scene or observation
+                layout (an env of another id or config), naming what differs; the env is left unchanged.
+        """
+        self._check_open()
         if not isinstance(state, EnvState):
             raise ValueError(f"state must be an EnvState from get_state(), got {type(state).__name__}")
+        if _layout(state.last_observation) != _layout(self.observation_space):
+            raise ValueError(f"state's observation has the layout {_layout(state.last_observation)}, this env's "
+                             f"{_layout(self.observation_space)}: the state is of another id or config")
         self.sim.restore(state.simulation)
         self.task = self._make_task()
         self.task.set_state(state.task)
@@ -393,6 +416,10 @@ class SutureEnv(gym.Env):
             end_on_miss=cfg.termination.end_on_miss and not self._GOAL_CONDITIONED,
             params=cfg.task_params,
         )
+
+    def _check_open(self) -> None:
+        if self._closed:
+            raise RuntimeError(f"this {self.config.task} env was closed (close() was called); make a new one")
 
     @staticmethod
     def _check_action(action) -> np.ndarray:
