@@ -13,13 +13,23 @@ action strategy:
 * ``corner``: a random corner of the box, redrawn every step;
 * ``bang_bang``: a random corner held for 1-20 steps, then its sign flipped;
 * ``tiny``: uniform in ``[-1e-6, 1e-6]^6``;
-* ``extreme``: random signs times magnitudes from 1 to 1e300 (outside the box: the env clips them).
+* ``extreme``: random signs times magnitudes from 1 to 1e300 (outside the box: the env clips them);
+* ``scripted_abort``: the scripted surgeon (:class:`~suture_gym.baselines.surgeon.ScriptedSurgeon`) for ``k``
+  steps, ``k`` uniform in ``[0, episode length)``, then one abort held to the end: ``push`` (full force down,
+  into the tissue), ``pull`` (full force up), ``twist`` (full torque about a random axis, either sense) or
+  ``yank`` (full force along a random corner's direction) -- the states a policy that learnt the procedure
+  could then drive the tissue into.
+
+Every episode's return (the sum of its rewards) is kept; ``failure_return_max`` is the largest return of any
+episode that ended in a failure (a tear, the tip out of the workspace, a miss, a divergence), with its reproducer
+and how it ended: a failure should never pay more than nothing.
 
 Counted: exceptions from ``reset`` or ``step`` (the first few with their traceback), non-finite
 observations, rewards and ``info`` numbers, contract violations (an observation outside its space, a reward that
 is not the exact sum of its terms, a step after ``terminated`` that the env did not refuse), divergences and how
 episodes ended. Exits 1 if there was any exception, non-finite value, violation or divergence (every action acts
-in the box, and in-box actions must never diverge), else 0.
+in the box, and in-box actions must never diverge), or if an episode that ended in a failure returned more than 0,
+else 0.
 
 Every event (exception, non-finite value, violation, divergence) is listed in ``events`` with its reproducer:
 the env id, config file, action mode, strategy, the episode's seed and the step (1-based within the episode).
@@ -60,7 +70,11 @@ from suture_gym.envs import ENV_IDS, GOAL_ENV_IDS  # noqa: E402
 from suture_gym.envs.config import ACTION_MODES  # noqa: E402
 
 #: Action strategies, one per episode (module docstring).
-STRATEGIES = ("random", "corner", "bang_bang", "tiny", "extreme")
+STRATEGIES = ("random", "corner", "bang_bang", "tiny", "extreme", "scripted_abort")
+#: The aborts of ``scripted_abort``, each a constant action in the box.
+ABORTS = ("push", "pull", "twist", "yank")
+#: How an episode ends that counts as a failure (:func:`_end_reason`).
+FAILURE_ENDS = ("tear", "out_of_workspace", "missed", "diverged", "terminated")
 #: Exceptions reported with their traceback (the rest are counted, and listed in ``events``).
 EXCEPTION_SAMPLES = 10
 #: Events listed with their reproducers (the rest are counted).
@@ -85,14 +99,39 @@ def cases(config_dir: Path = CONFIG_DIR) -> list[dict]:
     return out
 
 
-class ActionStream:
-    """The actions of one episode under ``strategy``, drawn from ``rng``."""
+def abort_action(abort: str, rng: np.random.Generator) -> np.ndarray:
+    """The constant ``(6,)`` action of ``abort`` (one of :data:`ABORTS`), its random axis or signs from ``rng``."""
+    action = np.zeros(6)
+    if abort == "push":
+        action[2] = -1.0
+    elif abort == "pull":
+        action[2] = 1.0
+    elif abort == "twist":
+        action[3 + int(rng.integers(3))] = rng.choice([-1.0, 1.0])
+    elif abort == "yank":
+        action[:3] = rng.choice([-1.0, 1.0], size=3)
+    else:
+        raise ValueError(f"abort must be one of {ABORTS}, got {abort!r}")
+    return action
 
-    def __init__(self, strategy: str, rng: np.random.Generator) -> None:
+
+class ActionStream:
+    """The actions of one episode under ``strategy``, drawn from ``rng``; ``env`` (reset for the episode) and
+    ``length`` (its steps) are what ``scripted_abort`` needs: the surgeon acts on the env's state and the abort
+    starts within the episode."""
+
+    def __init__(self, strategy: str, rng: np.random.Generator, env: gym.Env | None = None, length: int = 1) -> None:
         self.strategy = strategy
         self.rng = rng
         self.held = self._corner()
         self.hold_left = 0
+        if strategy == "scripted_abort":
+            from suture_gym.baselines.surgeon import ScriptedSurgeon
+
+            self.surgeon = ScriptedSurgeon(env)
+            self.scripted_left = int(rng.integers(max(1, length)))
+            self.abort = ABORTS[int(rng.integers(len(ABORTS)))]
+            self.held = abort_action(self.abort, rng)
 
     def _corner(self) -> np.ndarray:
         return self.rng.choice([-1.0, 1.0], size=6)
@@ -111,6 +150,11 @@ class ActionStream:
             return self.held.astype(np.float32)
         if self.strategy == "tiny":
             return rng.uniform(-1e-6, 1e-6, 6).astype(np.float32)
+        if self.strategy == "scripted_abort":
+            if self.scripted_left > 0:
+                self.scripted_left -= 1
+                return self.surgeon(None)
+            return self.held.astype(np.float32)
         return self._corner() * 10.0 ** rng.uniform(0.0, 300.0, 6)
 
 
@@ -148,6 +192,8 @@ class Tally:
         self.exception_samples: list[dict] = []
         self.events: list[dict] = []
         self.cases: list[dict] = []
+        #: The failure ending with the largest return: ``{"return", "reason", "abort", **reproducer}``, or None.
+        self.failure_return_max: dict | None = None
 
     def add(self, key: str, record: dict, count: int = 1) -> None:
         self.totals[key] += count
@@ -170,24 +216,33 @@ class Tally:
     def end(self, reason: str) -> None:
         self.ends[reason] = self.ends.get(reason, 0) + 1
 
+    def episode_return(self, episode: Episode, step: int, total: float, reason: str, actions: ActionStream) -> None:
+        """Keep the episode's return ``total`` if it ended (at ``step``) in a failure paying more than any so far."""
+        if reason in FAILURE_ENDS and (self.failure_return_max is None or total > self.failure_return_max["return"]):
+            self.failure_return_max = {"return": total, "reason": reason, "abort": getattr(actions, "abort", None),
+                                       **episode.reproducer(), "step": step}
+
 
 @dataclass(frozen=True)
 class Episode:
     """One fuzz episode: the env reset with ``seed`` and the actions of ``strategy`` drawn from
     ``np.random.default_rng([seed, 1])``; with the case, all it takes to replay it (:func:`replay`). ``seed`` is
-    None (and ``strategy`` empty) for the env's construction, before any episode."""
+    None (and ``strategy`` empty) for the env's construction, before any episode; ``max_episode_steps`` is the
+    run's cap (``scripted_abort`` draws its abort step below it)."""
 
     case: dict
     strategy: str
     seed: int | None
+    max_episode_steps: int = 200
 
-    def actions(self) -> ActionStream:
-        return ActionStream(self.strategy, np.random.default_rng([self.seed, 1]))
+    def actions(self, env: gym.Env | None = None) -> ActionStream:
+        """The episode's actions (``env`` reset with :attr:`seed`)."""
+        return ActionStream(self.strategy, np.random.default_rng([self.seed, 1]), env, self.max_episode_steps)
 
     def reproducer(self) -> dict:
         c = self.case
         return {"id": c["id"], "config": c["config"], "action_mode": c["action_mode"], "strategy": self.strategy,
-                "seed": self.seed}
+                "seed": self.seed, "max_episode_steps": self.max_episode_steps}
 
 
 def _name(case: dict) -> str:
@@ -231,22 +286,24 @@ def run_case(case: dict, steps: int, max_episode_steps: int, rng: np.random.Gene
     try:
         env = _make(case)
     except Exception as error:
-        tally.exception(record, Episode(case, "", None), "make", 0, error)
+        tally.exception(record, Episode(case, "", None, max_episode_steps), "make", 0, error)
         bar.update(steps)
         return
     done_steps = 0
     while done_steps < steps:
-        episode = Episode(case, STRATEGIES[int(rng.integers(len(STRATEGIES)))], int(rng.integers(2**31)))
+        episode = Episode(case, STRATEGIES[int(rng.integers(len(STRATEGIES)))], int(rng.integers(2**31)),
+                          max_episode_steps)
         try:
             env.reset(seed=episode.seed)
         except Exception as error:
             tally.exception(record, episode, "reset", 0, error)
             bar.update(steps - done_steps)
             break
-        actions = episode.actions()
+        length = min(max_episode_steps, steps - done_steps)
+        actions = episode.actions(env)
         tally.strategies[episode.strategy] += 1
         tally.add("episodes", record)
-        length = min(max_episode_steps, steps - done_steps)
+        total = 0.0
         for step in range(1, length + 1):
             done_steps += 1
             tally.add("steps", record)
@@ -258,8 +315,10 @@ def run_case(case: dict, steps: int, max_episode_steps: int, rng: np.random.Gene
                 break
             for kind, details in _check_step(env, obs, reward, info):
                 tally.event(kind, record, episode, step, **details)
+            total += float(reward)
             if terminated or truncated:
                 tally.end(_end_reason(info, terminated))
+                tally.episode_return(episode, step, total, _end_reason(info, terminated), actions)
                 if terminated:
                     try:
                         env.step(actions())
@@ -305,6 +364,7 @@ def fuzz(steps: int, seed: int = 0, max_episode_steps: int = 200, progress: bool
         **tally.totals,
         "seconds": round(time.perf_counter() - start, 1),
         "episode_ends": dict(sorted(tally.ends.items())),
+        "failure_return_max": tally.failure_return_max,
         "episodes_per_strategy": tally.strategies,
         "events": tally.events,
         "events_left_out": sum(tally.totals[k] for k in FAILURES) - len(tally.events),
@@ -316,7 +376,8 @@ def fuzz(steps: int, seed: int = 0, max_episode_steps: int = 200, progress: bool
 def replay(event: dict, config_dir: Path = CONFIG_DIR) -> dict:
     """Play the episode of ``event`` (a reproducer from a run's ``events``: ``id``, ``config`` (a file of
     ``config_dir`` or a path), ``action_mode``, ``strategy``, ``seed``, ``step``) up to its step and return what
-    happened there: ``{**reproducer, "events": [{kind, ...details}], "reproduced": bool}``, ``reproduced`` when
+    happened there: ``{**reproducer, "events": [{kind, ...details}], "return": the episode's return up to that
+    step, "reproduced": bool}``, ``reproduced`` when
     an event of the same ``kind`` (if the event names one) happened at that step."""
     missing = [k for k in ("id", "config", "action_mode", "strategy", "seed", "step") if k not in event]
     if missing:
@@ -327,16 +388,19 @@ def replay(event: dict, config_dir: Path = CONFIG_DIR) -> dict:
     path = Path(event["config"])
     case = {"id": event["id"], "action_mode": event["action_mode"], "config": event["config"],
             "path": path if path.is_file() else config_dir / path}
-    episode = Episode(case, event["strategy"], None if event["seed"] is None else int(event["seed"]))
+    episode = Episode(case, event["strategy"], None if event["seed"] is None else int(event["seed"]),
+                      int(event.get("max_episode_steps", 200)))
     step = int(event["step"])
     found: list[dict] = []
+    total = 0.0
     try:
         env = _make(case)
         if episode.seed is not None:
             env.reset(seed=episode.seed)
-            actions = episode.actions()
+            actions = episode.actions(env)
         for k in range(1, step + 1):
             obs, reward, terminated, truncated, info = env.step(actions())
+            total += float(reward)
             if k == step:
                 found = [{"kind": kind, **details} for kind, details in _check_step(env, obs, reward, info)]
                 found.append({"kind": "end", "terminated": terminated, "truncated": truncated,
@@ -348,7 +412,7 @@ def replay(event: dict, config_dir: Path = CONFIG_DIR) -> dict:
         found = [{"kind": "exceptions", "type": type(error).__name__, "message": str(error)[:500]}]
     kinds = {f["kind"] for f in found}
     reproduced = event["kind"] in kinds if "kind" in event else bool(kinds & set(FAILURES))
-    return {**episode.reproducer(), "step": step, "events": found, "reproduced": reproduced}
+    return {**episode.reproducer(), "step": step, "events": found, "return": total, "reproduced": reproduced}
 
 
 #: The counts of which any makes a run fail.
@@ -356,8 +420,10 @@ FAILURES = ("exceptions", "non_finite_obs", "non_finite_reward", "non_finite_inf
 
 
 def failed(summary: dict) -> bool:
-    """Whether the run found a bug: an exception, a non-finite value, a contract violation or a divergence."""
-    return any(summary[k] for k in FAILURES)
+    """Whether the run found a bug: an exception, a non-finite value, a contract violation, a divergence, or a
+    failure ending with a positive return."""
+    worst = summary["failure_return_max"]
+    return any(summary[k] for k in FAILURES) or (worst is not None and worst["return"] > 0.0)
 
 
 def _load_event(text: str) -> dict:
@@ -404,6 +470,7 @@ def main(argv: list[str] | None = None) -> int:
         for key in ("cases", "steps", "episodes", *FAILURES, "seconds"):
             print(f"{key:>18s}  {summary[key]}")
         print(f"{'episode_ends':>18s}  {summary['episode_ends']}")
+        print(f"{'failure_return_max':>18s}  {json.dumps(summary['failure_return_max'])}")
         for event in summary["events"]:
             print(json.dumps(event))
     return 1 if failed(summary) else 0

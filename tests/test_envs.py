@@ -584,3 +584,39 @@ def test_a_start_phase_episode_does_not_depend_on_the_episodes_before_it():
             break
     _expert_record(used, 2, 40, inserted)
     assert _expert_record(fresh, 7, 120, inserted) == _expert_record(used, 7, 120, inserted)
+
+
+def test_set_state_refuses_another_tasks_state_and_leaves_the_env_unchanged():
+    needle = SutureEnv("needle_insert")
+    needle.reset(seed=0)
+    throw = SutureEnv("suture_throw")
+    throw.reset(seed=0)
+    before = needle.get_state()
+    with pytest.raises(ValueError, match=r"another id or config|of task 'suture_throw'; this simulation is of task "
+                                         r"'needle_insert'"):
+        needle.set_state(throw.get_state())
+    with pytest.raises(ValueError, match=r"the snapshot is of task 'suture_throw'; this simulation is of task "
+                                         r"'needle_insert'"):
+        needle.sim.restore(throw.sim.snapshot())
+    obs, *_ = needle.step(np.zeros(6))  # unchanged: steps on from its own state
+    needle.set_state(before)
+    assert needle.step(np.zeros(6))[0].tobytes() == obs.tobytes()
+
+
+def test_reset_step_and_snapshots_after_close_raise():
+    env = SutureEnv("needle_insert")
+    env.reset(seed=0)
+    state = env.get_state()
+    env.close()
+    env.close()  # closing twice is fine
+    for call in (lambda: env.step(np.zeros(6)), lambda: env.reset(seed=1), env.get_state,
+                 lambda: env.set_state(state)):
+        with pytest.raises(RuntimeError, match="this needle_insert env was closed"):
+            call()
+
+
+def test_incompressible_tissue_with_the_xpbd_integrator_is_refused_at_construction():
+    with pytest.raises(ValueError, match=r"tissue\.poisson_ratio = 0\.5 \(incompressible\) with "
+                                         r"solver\.tissue_integrator = 'xpbd'"):
+        SutureEnv("needle_insert", config={"tissue": {"poisson_ratio": 0.5}, "solver": {"tissue_integrator": "xpbd"}})
+    SutureEnv("needle_insert", config={"tissue": {"poisson_ratio": 0.49}, "solver": {"tissue_integrator": "xpbd"}})

@@ -89,3 +89,41 @@ def test_replay_names_what_an_event_lacks(fuzz):
     with pytest.raises(ValueError, match=r"lacks \['seed', 'step'\]"):
         fuzz.replay({"id": "SutureGym/NeedleInsert-v3", "config": "needle_insert.yaml", "action_mode": "wrench",
                      "strategy": "random"})
+
+
+def test_scripted_abort_follows_the_surgeon_then_holds_one_abort(fuzz):
+    import gymnasium as gym
+    import numpy as np
+
+    from suture_gym.baselines.surgeon import ScriptedSurgeon
+
+    env = gym.make("SutureGym/NeedleInsert-v3")
+    env.reset(seed=4)
+    stream = fuzz.ActionStream("scripted_abort", np.random.default_rng([4, 1]), env, 30)
+    scripted, surgeon = stream.scripted_left, ScriptedSurgeon(env)
+    assert 0 <= scripted < 30 and stream.abort in fuzz.ABORTS
+    for k in range(30):
+        action = stream()
+        expected = surgeon(None) if k < scripted else stream.held
+        np.testing.assert_array_equal(action, np.asarray(expected, np.float32))
+        env.step(action)
+    assert fuzz.abort_action("push", np.random.default_rng(0)).tolist() == [0, 0, -1, 0, 0, 0]
+    twist = fuzz.abort_action("twist", np.random.default_rng(0))
+    assert not twist[:3].any() and np.abs(twist[3:]).sum() == 1.0
+    assert np.abs(fuzz.abort_action("yank", np.random.default_rng(0))[:3]).tolist() == [1, 1, 1]
+    with pytest.raises(ValueError, match="abort must be one of .*got 'shake'"):
+        fuzz.abort_action("shake", np.random.default_rng(0))
+
+
+def test_the_largest_failure_return_is_reported_with_a_reproducer(fuzz, monkeypatch, capsys):
+    monkeypatch.setattr(fuzz, "STRATEGIES", ("scripted_abort",))
+    status = fuzz.main(["--steps", "300", "--max-episode-steps", "100", "--json", "--no-progress", "--only",
+                        "NeedleInsert-v3 wrench needle_insert.yaml"])
+    summary = json.loads(capsys.readouterr().out)
+    worst = summary["failure_return_max"]
+    assert worst["strategy"] == "scripted_abort" and worst["abort"] in fuzz.ABORTS
+    assert worst["reason"] in fuzz.FAILURE_ENDS and worst["max_episode_steps"] == 100
+    assert status == (1 if worst["return"] > 0 else 0)
+    replayed = fuzz.replay(worst)  # the reproducer plays the same episode to its failing end
+    assert replayed["return"] == worst["return"]
+    assert {"kind": "end", "terminated": True, "truncated": False, "reason": worst["reason"]} in replayed["events"]

@@ -1,6 +1,12 @@
 """The batched vector env (``make_vector_env``), ``gym.make_vec`` with wrappers, and the Stable-Baselines3 adapter:
 equality with single envs, both autoreset modes, time limits, reset masks, snapshots, and SB3's VecEnv conventions
-(PPO and HER smoke runs)."""
+(PPO and HER smoke runs); worker faults (a killed or stopped worker raises WorkerError within the timeout, or is
+restarted and its episode truncated)."""
+
+import os
+import signal
+import threading
+import time
 
 import gymnasium as gym
 import numpy as np
@@ -8,7 +14,7 @@ import pytest
 from gymnasium.vector import AutoresetMode
 
 import suture_gym.envs  # noqa: F401  (registers the ids)
-from suture_gym.envs import MAX_EPISODE_STEPS, SutureEnv, SutureVectorEnv, make_vector_env
+from suture_gym.envs import MAX_EPISODE_STEPS, SutureEnv, SutureVectorEnv, WorkerError, make_vector_env
 from suture_gym.envs.vector import default_workers
 
 N = 3
@@ -183,3 +189,127 @@ def test_sb3_ppo_and_her_smoke():
     model.learn(40)
     env.close()
     goal_env.close()
+
+
+ZEROS = np.zeros((3, 6), np.float32)
+
+
+def _pid(vec, worker: int) -> int:
+    return vec._workers.processes[worker].pid
+
+
+def test_a_worker_killed_between_steps_is_named_with_its_signal_and_last_actions():
+    vec = SutureVectorEnv("needle_insert", 3, workers=2, worker_timeout=10)
+    vec.reset(seed=0)
+    actions = np.full((3, 6), 0.25, np.float32)
+    vec.step(actions)
+    os.kill(_pid(vec, 1), signal.SIGKILL)
+    with pytest.raises(WorkerError) as raised:
+        vec.step(actions)
+    error = raised.value
+    assert (error.worker, error.env_indices, error.exitcode, error.signal) == (1, (2,), -9, "SIGKILL")
+    assert "worker 1 (env 2" in str(error) and "killed by SIGKILL" in str(error)
+    assert "env 2: [0.25, 0.25, 0.25, 0.25, 0.25, 0.25]" in str(error)
+    assert "__main__" not in str(error)  # the hint is for a worker that fails to start, not for a signal
+    with pytest.raises(WorkerError, match="worker 1 .*killed by SIGKILL.*the worker is gone"):
+        vec.reset(seed=1)  # every later request names the same fault
+    vec.close()
+
+
+def test_a_worker_killed_mid_step_raises_at_once():
+    vec = SutureVectorEnv("needle_insert", 3, workers=2, worker_timeout=30, config={"solver": {"substeps": 100}})
+    vec.reset(seed=0)
+    threading.Timer(0.05, os.kill, (_pid(vec, 0), signal.SIGKILL)).start()
+    start = time.monotonic()
+    with pytest.raises(WorkerError, match=r"worker 0 \(envs 0-1.*killed by SIGKILL \(exit code -9\)") as raised:
+        vec.step(ZEROS)  # 100 substeps: the kill lands while the worker steps
+    assert time.monotonic() - start < 30 and raised.value.env_indices == (0, 1)
+    vec.close()
+
+
+def test_a_stopped_worker_times_out_with_a_named_error():
+    vec = SutureVectorEnv("needle_insert", 3, workers=2, worker_timeout=3)
+    vec.reset(seed=0)
+    process = vec._workers.processes[0]
+    os.kill(process.pid, signal.SIGSTOP)
+    start = time.monotonic()
+    with pytest.raises(WorkerError, match=r"worker 0 .*did not answer within worker_timeout = 3 s \(process "
+                                          r"state: T \(stopped\)\) and was killed.*step with actions") as raised:
+        vec.step(ZEROS)
+    assert 3 <= time.monotonic() - start < 10
+    assert raised.value.exitcode is None and raised.value.signal is None
+    vec.close()
+    assert not process.is_alive()
+    with pytest.raises(ValueError, match=r"worker_timeout must be None or a finite number of seconds > 0, got 0"):
+        SutureVectorEnv("needle_insert", 2, workers=1, worker_timeout=0)
+
+
+@pytest.mark.parametrize("mode", [AutoresetMode.NEXT_STEP, AutoresetMode.SAME_STEP])
+def test_restart_workers_truncates_the_episode_and_carries_on(mode):
+    vec = SutureVectorEnv("needle_insert", 3, workers=2, worker_timeout=10, restart_workers=True,
+                          autoreset_mode=mode)
+    vec.reset(seed=5)
+    for _ in range(2):
+        last, *_ = vec.step(ZEROS)
+    old = _pid(vec, 1)
+    os.kill(old, signal.SIGKILL)
+    with pytest.warns(RuntimeWarning, match="worker 1 .*killed by SIGKILL.*restarting it"):
+        obs, rewards, terminations, truncations, infos = vec.step(ZEROS)
+    assert _pid(vec, 1) != old and vec.restarts.tolist() == [0, 0, 1]
+    assert truncations.tolist() == [False, False, True] and not terminations.any() and rewards[2] == 0.0
+    assert infos["_worker_restarted"].tolist() == [False, False, True] and infos["worker_restarted"][2]
+    assert "killed by SIGKILL" in infos["worker_error"][2]
+    fresh = SutureEnv("needle_insert").reset(seed=vec.restart_seed(2))[0]  # the derived seed's first observation
+    if mode == AutoresetMode.SAME_STEP:
+        np.testing.assert_array_equal(infos["final_obs"][2], last[2])
+        np.testing.assert_array_equal(obs[2], fresh)
+        obs, _, _, truncations, _ = vec.step(ZEROS)
+        assert not truncations.any()
+    else:
+        np.testing.assert_array_equal(obs[2], last[2])  # the episode's last observation, then the autoreset
+        obs, rewards, _, truncations, infos = vec.step(ZEROS)
+        np.testing.assert_array_equal(obs[2], fresh)
+        assert rewards[2] == 0.0 and not truncations.any() and infos["worker_restarted"][2]
+    for _ in range(3):
+        obs, *_ = vec.step(ZEROS)
+    assert np.all(np.isfinite(obs))
+    vec.close()
+
+
+def test_restart_workers_retries_a_reset_and_recovers_a_stopped_worker():
+    vec = SutureVectorEnv("needle_insert", 3, workers=2, worker_timeout=3, restart_workers=True)
+    first, _ = vec.reset(seed=3)
+    os.kill(_pid(vec, 0), signal.SIGSTOP)
+    with pytest.warns(RuntimeWarning, match="did not answer within worker_timeout = 3 s"):
+        again, infos = vec.reset(seed=3)
+    np.testing.assert_array_equal(again, first)  # the same seeds on the new worker: the same episodes
+    assert infos["worker_restarted"].tolist() == [True, True, False]
+    os.kill(_pid(vec, 1), signal.SIGKILL)
+    with pytest.warns(RuntimeWarning), pytest.raises(WorkerError, match="worker 1"):
+        vec.get_attr("render_mode")  # any other request: the worker is restarted and the error raised
+    assert vec.get_attr("render_mode") == (None, None, None)
+    _, _, _, truncations, infos = vec.step(ZEROS)  # the interrupted env's episode ends at its next step
+    assert truncations.tolist() == [False, False, True] and infos["worker_restarted"][2]
+    vec.close()
+
+
+def test_sb3_ppo_learns_through_a_killed_worker():
+    pytest.importorskip("stable_baselines3")
+    from stable_baselines3 import PPO
+    from stable_baselines3.common.callbacks import BaseCallback
+
+    from suture_gym.envs.sb3 import make_sb3_vec_env
+
+    class KillOnce(BaseCallback):
+        def _on_step(self) -> bool:
+            if self.num_timesteps == 40:
+                os.kill(_pid(self.training_env.unwrapped.vector_env, 1), signal.SIGKILL)
+            return True
+
+    env = make_sb3_vec_env("SutureGym/NeedleInsert-v3", 2, max_episode_steps=30, workers=2, worker_timeout=30,
+                           restart_workers=True)
+    model = PPO("MlpPolicy", env, n_steps=64, batch_size=64, n_epochs=1, seed=0, device="cpu")
+    with pytest.warns(RuntimeWarning, match="worker 1 .*killed by SIGKILL"):
+        model.learn(256, callback=KillOnce())
+    assert model.num_timesteps >= 256 and env.unwrapped.vector_env.restarts.tolist() == [0, 1]
+    env.close()

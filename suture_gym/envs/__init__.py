@@ -30,7 +30,7 @@ from suture_gym.envs.registry import (
     registered_tasks,
     task_class,
 )
-from suture_gym.envs.vector import SutureVectorEnv, make_vector_env
+from suture_gym.envs.vector import SutureVectorEnv, WorkerError, make_vector_env
 from suture_gym.tasks import NeedleInsert, SutureThrow, WoundClosure
 
 register_task(NeedleInsert)
@@ -47,6 +47,7 @@ __all__ = [
     "SutureEnv",
     "SutureGoalEnv",
     "SutureVectorEnv",
+    "WorkerError",
     "default_config",
     "env_id_task",
     "load_config",

@@ -28,7 +28,7 @@ speed above ``solver.max_speed``; or a non-finite observation or reward): a fail
 ``truncated`` at the time limit, which comes from registration (``TimeLimit``). Once the env has ended an
 episode (``terminated``), ``step`` raises RuntimeError until ``reset``; Gymnasium's
 ``TimeLimit`` does not stop a step after its own truncation. ``render`` before the first ``reset`` raises
-RuntimeError too.
+RuntimeError too, and so do ``reset``, ``step`` and the snapshots after ``close``.
 
 Rendering: ``render_mode="rgb_array"``: :meth:`~SutureEnv.render` returns an image from the offline renderer
 (:mod:`suture_gym.render`). ``render_mode="human"``: a live 3D view in the browser
@@ -105,6 +105,13 @@ class EnvState:
     ended: bool
 
 
+def _layout(obs):
+    """The shapes of an observation or observation space: an array's shape, or a dict's keys with theirs."""
+    if isinstance(obs, (dict, gym.spaces.Dict)):
+        return {k: _layout(v) for k, v in obs.items()}
+    return tuple(obs.shape) if isinstance(obs, gym.spaces.Space) else tuple(np.shape(obs))
+
+
 def _copy_obs(obs):
     if isinstance(obs, dict):
         return {k: v.copy() for k, v in obs.items()}
@@ -167,6 +174,8 @@ class SutureEnv(gym.Env):
         self.metadata = {**self.metadata, "render_fps": max(1, int(round(1.0 / self.sim.control_dt)))}
         a = cfg.action
         self._wrench_scale = np.array([a.max_force] * 3 + [a.max_torque] * 3)
+        tilt = a.max_tilt if a.frame == "needle" else a.max_rotation
+        self._rotation_scale = np.array([tilt, tilt, a.max_rotation])  # rad per step (pose_delta)
         self._obs_buffer = np.zeros(size)
         self._target_pos = np.zeros(3)
         self._target_quat = np.array([1.0, 0.0, 0.0, 0.0])
@@ -174,6 +183,7 @@ class SutureEnv(gym.Env):
         self._ended = False
         self._renderer = None
         self._live = None
+        self._closed = False
         #: (seed, steps, return, last info, ended) of the episode, for the live view (``render_mode="human"``).
         self._live_episode: tuple = (None, 0, 0.0, {}, False)
 
@@ -188,6 +198,7 @@ class SutureEnv(gym.Env):
         procedure for curricula; ``params`` (mapping) overrides sampled :class:`EpisodeParams` fields.
         Unknown options raise ValueError.
         """
+        self._check_open()
         super().reset(seed=seed)
         options = {} if options is None else options
         if not isinstance(options, dict):
@@ -219,6 +230,7 @@ class SutureEnv(gym.Env):
 
     def step(self, action):
         """Apply ``action`` for one control period (``solver.substeps`` substeps) and score it."""
+        self._check_open()
         if self._last_obs is None:
             raise RuntimeError("call reset() before step()")
         if self._ended:
@@ -230,7 +242,7 @@ class SutureEnv(gym.Env):
         else:
             rot, centre = self._action_frame()
             move = rot @ (a[:3] * cfg.max_translation)
-            turn = quat_from_rotation_vector(rot @ (a[3:] * cfg.max_rotation))
+            turn = quat_from_rotation_vector(rot @ (a[3:] * self._rotation_scale))
             if centre is not None:  # turn the target about the needle's circle centre
                 self._target_pos = centre + quat_rotate(turn, self._target_pos - centre)
             self._target_pos = self._target_pos + move
@@ -280,6 +292,9 @@ class SutureEnv(gym.Env):
         return self._renderer.render(self.view_frame())
 
     def close(self) -> None:
+        """Release the renderer and the live view; ``reset``, ``step``, ``get_state`` and ``set_state`` raise
+        RuntimeError afterwards (closing again is allowed)."""
+        self._closed = True
         self._renderer = None
         if self._live is not None:
             self._live.close()
@@ -329,7 +344,7 @@ class SutureEnv(gym.Env):
         turn = quat_mul(target_quat, quat_conj(self._target_quat))
         turned = self._target_pos if centre is None else centre + quat_rotate(turn, self._target_pos - centre)
         action = np.concatenate([rot.T @ (target_pos - turned) / cfg.max_translation,
-                                 rot.T @ quat_rotation_vector(turn) / cfg.max_rotation])
+                                 rot.T @ quat_rotation_vector(turn) / self._rotation_scale])
         return np.clip(action, -1.0, 1.0).astype(np.float32)
 
     def action_for_wrench(self, wrench: np.ndarray) -> np.ndarray:
@@ -379,6 +394,7 @@ class SutureEnv(gym.Env):
     def get_state(self) -> EnvState:
         """A deep snapshot of the episode (physics, task bookkeeping, holder target, last observation and the
         random generator). Wrappers' own counters (``TimeLimit``'s elapsed steps) are not part of it."""
+        self._check_open()
         if self._last_obs is None:
             raise RuntimeError("call reset() before get_state()")
         return EnvState(
@@ -392,9 +408,18 @@ class SutureEnv(gym.Env):
         )
 
     def set_state(self, state: EnvState) -> None:
-        """Restore a :meth:`get_state` snapshot; replaying the same actions then gives identical results."""
+        """Restore a :meth:`get_state` snapshot; replaying the same actions then gives identical results.
+
+        Raises:
+            ValueError: ``state`` is not an :class:`EnvState`, or is one of another task, scene or observation
+                layout (an env of another id or config), naming what differs; the env is left unchanged.
+        """
+        self._check_open()
         if not isinstance(state, EnvState):
             raise ValueError(f"state must be an EnvState from get_state(), got {type(state).__name__}")
+        if _layout(state.last_observation) != _layout(self.observation_space):
+            raise ValueError(f"state's observation has the layout {_layout(state.last_observation)}, this env's "
+                             f"{_layout(self.observation_space)}: the state is of another id or config")
         self.sim.restore(state.simulation)
         self.task = self._make_task()
         self.task.set_state(state.task)
@@ -432,6 +457,10 @@ class SutureEnv(gym.Env):
             end_on_miss=cfg.termination.end_on_miss and not self._GOAL_CONDITIONED,
             params=cfg.task_params,
         )
+
+    def _check_open(self) -> None:
+        if self._closed:
+            raise RuntimeError(f"this {self.config.task} env was closed (close() was called); make a new one")
 
     @staticmethod
     def _check_action(action) -> np.ndarray:

@@ -115,7 +115,11 @@ def make_sb3_vec_env(env_id: str, num_envs: int = 1, *, monitor: bool = True, **
         num_envs: N >= 1.
         monitor: wrap the result in SB3's ``VecMonitor`` (episode returns and lengths in ``info["episode"]``).
         **kwargs: go to :func:`~suture_gym.envs.vector.make_vector_env` (``config``, ``action_mode``,
-            ``render_mode``, ``max_episode_steps``; the id's time limit by default).
+            ``render_mode``, ``max_episode_steps``, the id's time limit by default; ``workers``,
+            ``worker_timeout``, ``restart_workers``). With ``restart_workers=True`` a worker that dies or stops
+            answering is replaced and its envs' episodes end as time-limit truncations
+            (``infos[i]["TimeLimit.truncated"]``, ``infos[i]["worker_restarted"]``, the last observation as
+            ``terminal_observation``), so training loses those episodes, not the run.
     """
     if "autoreset_mode" in kwargs:
         raise ValueError("make_sb3_vec_env always uses AutoresetMode.SAME_STEP; do not pass autoreset_mode")

@@ -117,8 +117,10 @@ class _Build:
 
 @dataclass(frozen=True)
 class SimulationSnapshot:
-    """Everything :meth:`Simulation.restore` needs (the physics state is a deep copy)."""
+    """Everything :meth:`Simulation.restore` needs (the physics state is a deep copy); ``task`` is the config's
+    task name, since a snapshot restores only into a simulation of the same task."""
 
+    task: str
     build: _Build
     params: EpisodeParams
     state: State
@@ -437,6 +439,7 @@ class Simulation:
     def snapshot(self) -> SimulationSnapshot:
         """Deep copy of the physics state, with the scene it belongs to and the pending events."""
         return SimulationSnapshot(
+            task=self.config.task,
             build=self._build,
             params=self.params if self.params is not None else nominal_params(self.config),
             state=self.state.snapshot(),
@@ -448,6 +451,12 @@ class Simulation:
         """Make the simulation equal to ``snapshot`` (which stays reusable)."""
         if not isinstance(snapshot, SimulationSnapshot):
             raise ValueError(f"snapshot must be a SimulationSnapshot, got {type(snapshot).__name__}")
+        if snapshot.task != self.config.task:
+            raise ValueError(f"the snapshot is of task {snapshot.task!r}; this simulation is of task "
+                             f"{self.config.task!r}")
+        if snapshot.build.model.tissue.particle_count != self.model.tissue.particle_count:
+            raise ValueError(f"the snapshot's tissue has {snapshot.build.model.tissue.particle_count} particles, this "
+                             f"simulation's {self.model.tissue.particle_count}: it comes from another scene")
         self._build = snapshot.build
         self.params = snapshot.params
         self._load_state(snapshot.state)

@@ -1,5 +1,6 @@
 """Environment benchmarks (env steps per second of every registered id; of the batched vector env on 1, 2 and 4
-envs, ``vector_env``; seconds from an empty numba cache to each task's first step, ``cold_start``) and two
+envs, ``vector_env``; seconds from an empty numba cache to each task's first step, ``cold_start``; resident
+memory growth over randomised episodes, ``reset_memory``) and two
 end-to-end checks that the tasks can be done: the scripted surgeon's bite accuracy in NeedleInsert and its
 thread pulled through in SutureThrow.
 
@@ -20,6 +21,7 @@ times env steps on one thread. Two workloads:
 
 from __future__ import annotations
 
+import gc
 import math
 import os
 import platform
@@ -235,6 +237,48 @@ def bench_phase_reset() -> dict:
                     "id's randomised episodes (new parameters each)",
     }
 
+
+
+#: Randomised episodes of ``reset_memory`` per id, and the first ones left out of its growth (warm-up, caches).
+MEMORY_EPISODES = 2000
+MEMORY_SKIP = 200
+#: The ids ``reset_memory`` measures.
+MEMORY_IDS = ("SutureGym/NeedleInsert-v3", "SutureGym/WoundClosureGoal-v3")
+
+
+def _resident_kb() -> int:
+    """Resident memory of this process (``VmRSS`` of ``/proc/self/status``), KB."""
+    with open("/proc/self/status") as status:
+        return next(int(line.split()[1]) for line in status if line.startswith("VmRSS"))
+
+
+@benchmark("reset_memory")
+def bench_reset_memory() -> dict:
+    """Resident memory growth over :data:`MEMORY_EPISODES` randomised episodes of each of :data:`MEMORY_IDS`
+    (``gym.make(id)``, seeds 0, 1, ...; each episode a reset and one zero-action step, which solves with the
+    episode's new tissue), after the first :data:`MEMORY_SKIP`: ``growth_mb`` and ``kb_per_episode`` per id
+    (as the process sees it, heap fragmentation included). The acceptance bound is ``growth_mb_max < 2``."""
+    results = []
+    for env_id in MEMORY_IDS:
+        env = gym.make(env_id)
+        zero = np.zeros(6, np.float32)
+        for k in range(MEMORY_EPISODES):
+            env.reset(seed=k)
+            env.step(zero)
+            if k == MEMORY_SKIP - 1:
+                gc.collect()
+                before = _resident_kb()
+        gc.collect()
+        growth = _resident_kb() - before
+        env.close()
+        results.append({"env_id": env_id, "growth_mb": growth / 1024,
+                        "kb_per_episode": growth / (MEMORY_EPISODES - MEMORY_SKIP)})
+    return {
+        "ids": results,
+        "growth_mb_max": max(r["growth_mb"] for r in results),
+        "workload": f"{MEMORY_EPISODES} randomised episodes per id (reset, one zero step), growth after the first "
+                    f"{MEMORY_SKIP}",
+    }
 
 
 def _vector_rate(num_envs: int, workers: int, steps: int) -> float:

@@ -14,6 +14,7 @@ substeps.
 from __future__ import annotations
 
 import math
+import weakref
 from dataclasses import dataclass, field, fields
 
 import numpy as np
@@ -526,8 +527,20 @@ class Work:
         current = self._tissue_integrator
         if current is None or current.name != kind or current.dt != float(dt):
             current = implicit_tissue(self.model.tissue, kind, dt)
+            weakref.finalize(current, _drop_solve_buffer, current.factor).atexit = False
             self._tissue_integrator = current
         return current
+
+
+def _drop_solve_buffer(factor) -> None:
+    """Shrink the right-hand-side buffer of ``factor`` (a
+    :class:`~suture_gym.sim.rest_system.SparseCholesky` about to be released) to no column.
+
+    cholespy's CPU solver keeps the ``(n, k)`` buffer of its last solve and its destructor does not free it:
+    8 n k bytes lost with every factorisation, i.e. with every randomised episode's new tissue (about 6 KB on the
+    NeedleInsert pad). A solve with no column swaps that buffer for an empty one, so only the empty one is lost.
+    """
+    factor.solve(np.empty((factor.size, 0)))
 
 
 @dataclass

@@ -250,7 +250,7 @@ def check_material_range(tissue) -> None:
     if not np.all(np.isfinite(tissue.tet_lambda)):
         raise ValueError(
             "TissueMaterial.poisson_ratio = 0.5 (incompressible) is not supported by the implicit tissue "
-            "integrators; use poisson_ratio <= 0.49 or tissue_integrator='xpbd'"
+            "integrators; use poisson_ratio <= 0.49"
         )
     mu = tissue.tet_mu
     lame = tissue.tet_lambda - mu

@@ -61,6 +61,10 @@ class EnvConfig:
                 _fail(f.name, f"must be a {_field_types(EnvConfig)[f.name].__name__}, got {type(section).__name__}")
         scene = self.scene
         implicit = self.solver.tissue_integrator != "xpbd"
+        if not implicit and self.tissue.poisson_ratio >= 0.5:
+            _fail("tissue.poisson_ratio", f"= {self.tissue.poisson_ratio:g} (incompressible) with "
+                  "solver.tissue_integrator = 'xpbd': the tets' volume constraint is then rigid and the tissue "
+                  "diverges within a few steps; use tissue.poisson_ratio <= 0.49")
         check_tet_budget(scene.tets, f"scene.cell_size = {scene.cell_size:g} m over scene.size = {list(scene.size)} m",
                          scene.max_tets, "scene.max_tets", BYTES_PER_TET_IMPLICIT if implicit else BYTES_PER_TET_XPBD)
         noise, margin = self.randomization.needle_position_noise, self.termination.workspace_margin

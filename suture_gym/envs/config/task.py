@@ -32,7 +32,8 @@ class ActionConfig(_Section):
     needle's body frame at the step (:class:`~suture_gym.sim.needle.NeedleModel`: ``z`` the normal of the
     needle's plane; turning about ``-z`` drives the tip forward along its circle) and turns about the centre of the
     needle's circle instead of the grip point: a torque there (wrench mode) or a turn of the holder's target
-    about it (pose_delta), so one action component drives the needle along its own arc.
+    about it (pose_delta), so one action component drives the needle along its own arc; turns about its x and y
+    axes, which tilt the needle's plane, are scaled by ``max_tilt`` instead of ``max_rotation``.
     """
 
     SECTION: ClassVar[str] = "action"
@@ -43,6 +44,7 @@ class ActionConfig(_Section):
     max_torque: float = 0.02  # N m per component
     max_translation: float = 2.0e-4  # m per env step and component (pose_delta)
     max_rotation: float = 0.03  # rad per env step and component (pose_delta)
+    max_tilt: float = 0.03  # rad per env step about the needle's x and y axes (pose_delta, frame needle)
     # the virtual coupling (pose_delta, and the scripted surgeon): VirtualCoupling's defaults times FORCE_SCALE,
     # like the holder's mass and inertia (the same response time and damping ratio)
     coupling_linear_stiffness: float = FORCE_SCALE * VirtualCoupling.linear_stiffness  # N/m
