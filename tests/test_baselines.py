@@ -189,11 +189,11 @@ def test_train_command_from_scratch_leaves_out_the_warm_start(tmp_path, monkeypa
         return hyperparams
 
     monkeypatch.setattr(script, "load_hyperparams", shortened)
-    assert "behaviour_cloning" in shortened("ppo", "SutureGym/NeedleInsert-v3")
-    assert script.main(["--algo", "ppo", "--env", "SutureGym/NeedleInsert-v3", "--from-scratch", "--n-timesteps",
+    assert "behaviour_cloning" in shortened("ppo", "SutureGym/SutureThrow-v3")
+    assert script.main(["--algo", "ppo", "--env", "SutureGym/SutureThrow-v3", "--from-scratch", "--n-timesteps",
                         "128", "--out", str(tmp_path), "--eval-freq", "0", "--checkpoint-freq", "0",
                         "--no-progress"]) == 0
-    run_dir = tmp_path / "ppo_NeedleInsert_s0"
+    run_dir = tmp_path / "ppo_SutureThrow_s0"
     config = yaml.safe_load((run_dir / "config.yaml").read_text())
     assert "behaviour_cloning" not in config["hyperparams"] and config["hyperparams"]["n_steps"] == 64
     assert not (run_dir / "demos.npz").exists()

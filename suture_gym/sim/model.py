@@ -540,7 +540,7 @@ def _drop_solve_buffer(factor) -> None:
     8 n k bytes lost with every factorisation, i.e. with every randomised episode's new tissue (about 6 KB on the
     NeedleInsert pad). A solve with no column swaps that buffer for an empty one, so only the empty one is lost.
     """
-    factor.solve(np.empty((factor.size, 0)))
+    factor.release_buffer()
 
 
 @dataclass

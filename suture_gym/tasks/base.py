@@ -51,8 +51,6 @@ Reward terms (each reported as ``info["reward_<name>"]``; a task uses a subset, 
 * ``tissue_force``: ``-w_tissue_force cost`` with ``cost = max(0, F - safe_force) / (tear_force - safe_force)``
   and ``F`` the largest coupling force (N) of the step; ``info["cost"] = cost`` (>= 0) for safe RL.
 * ``action``: ``-w_action mean(a^2)`` of the action (clipped to the action box by the env).
-* ``time``: ``-w_time`` every step. The tasks set ``w_time`` so that the time limit's steps cost more than the
-  failure penalty: waiting out an episode never beats trying.
 
 The reward is ``math.fsum`` of the terms, so ``math.fsum(info["reward_<t>"] for t in TERMS) == reward`` holds
 exactly (``fsum`` is correctly rounded, whatever the order of the terms).
@@ -541,10 +539,6 @@ class Task(ABC):
     def term_action(self, ctx: StepContext) -> float:
         """``-w_action mean(a^2)`` of the action (clipped to the box)."""
         return -self.reward.action * float(np.mean(np.square(ctx.action)))
-
-    def term_time(self, ctx: StepContext) -> float:
-        """``-w_time`` every step."""
-        return -self.reward.time
 
     def failure(self, obs: Observables, outside: bool, missed: bool) -> bool:
         """Termination hook: whether the step that led to ``obs`` ends the episode as a failure (asked only when

@@ -27,7 +27,7 @@ class NeedleInsert(Task):
     VERSION_HISTORY = BUILTIN_VERSION_HISTORY
     CONFIG = {}
     TERMS = ("path", "progress", "entry", "exit", "puncture", "success", "failure", "forfeit", "tissue_force",
-             "action", "time")
+             "action")
     PHASES = ("approach", "inserted")
     NEEDS_PLANNED_ACCESS = True
     GOAL_SIZE = 8

@@ -34,7 +34,7 @@ class SutureThrow(Task):
     SCENE_KINDS = WOUND_KINDS
     NEEDS_THREAD = True
     TERMS = ("path", "progress", "entry", "exit", "puncture", "thread", "success", "failure", "forfeit",
-             "tissue_force", "action", "time")
+             "tissue_force", "action")
     PHASES = ("approach", "inserted", "exited")
     NEEDS_PLANNED_ACCESS = True
     GOAL_SIZE = 9

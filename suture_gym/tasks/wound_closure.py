@@ -46,7 +46,7 @@ class WoundClosure(Task):
     SURGEON_TURN_RATE = 2.0
     SURGEON_PULL_SPEED = 0.04
     TERMS = ("path", "progress", "entry", "exit", "puncture", "thread", "closure", "success", "failure",
-             "forfeit", "tissue_force", "action", "time")
+             "forfeit", "tissue_force", "action")
     PHASES = ("approach", "first_bite")
     GOAL_SIZE = 1
     GOAL_LAYOUT = (("wound_gap", "m"),)

@@ -138,8 +138,6 @@ class RewardConfig(_Section):
     failure: float = 10.0
     tissue_force: float = 0.5  # per step at cost 1
     action: float = 0.01  # per step: -w mean(a^2)
-    # per step: -w, the cost of time: waiting out the time limit costs more than failing (tasks set their own)
-    time: float = 0.0
     access_tolerance: float = 1.5e-3  # m, how close a puncture or exit must be to its planned point
     safe_force: float = 2.0  # N, coupling force below which the tissue-force cost is 0
     goal: str = "sparse"  # goal-conditioned variants: "sparse" (-1 until the goal is met, else 0) or "dense"
