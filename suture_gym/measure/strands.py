@@ -382,6 +382,96 @@ def check_suture_pull_jitter() -> CheckResult:
     )
 
 
+#: Extensible thread under an axial pull: 5 cm of the default material in 21 nodes, node 0 pinned, 2 N along the
+#: thread on the free end, no gravity; node damping 20/s (the implicit step alone settles it within ~10 substeps).
+THREAD_EXTENSION = {
+    "length_m": 0.05,
+    "node_count": 21,
+    "damping_per_s": 20.0,
+    "force_N": 2.0,
+    "duration_s": 0.2,
+    "sweeps": (1, 2, 4),
+}
+
+
+def _thread_extension_run(sweeps: int) -> dict:
+    """The extensible thread of :data:`THREAD_EXTENSION` pulled from rest with ``sweeps`` solver sweeps per 1 ms
+    substep; the strain of every segment at the end and how much it moved over the last quarter of the run."""
+    c = THREAD_EXTENSION
+    params = SutureParams(
+        length=c["length_m"], node_count=c["node_count"], inextensible=False, damping=c["damping_per_s"]
+    )
+    model = RodModel.from_params(params, pinned_nodes=[0])
+    state = RodState.straight(model, [0.0, 0.0, 0.0], [1.0, 0.0, 0.0])
+    system, full = _strands(gravity=0.0, suture=model, suture_state=state)
+    force = np.zeros((model.node_count, 3))
+    force[-1, 0] = c["force_N"]
+    control = Control(suture_force=force)
+    solver = Solver(max_speed=MAX_SPEED, rod_iterations=ITERATIONS, rod_tolerance=TOLERANCE, iterations=sweeps,
+                    tissue_integrator="xpbd")  # fmt: skip
+    dt = DT
+    steps = int(round(c["duration_s"] / dt))
+    settle_from = int(round(0.75 * steps))
+    settled = None
+    for k in range(steps):
+        solver.step(system, full, control, dt)
+        if full.diverged:
+            raise RuntimeError(f"the simulation diverged near t = {full.time:.4f} s")
+        if k == settle_from:
+            settled = segment_strain(model, state)
+    strain = segment_strain(model, state)
+    return {"strain": strain, "settled_change": float(np.abs(strain - settled).max())}
+
+
+@check("thread_extension_sweeps")
+def check_thread_extension_sweeps() -> CheckResult:
+    """Steady axial strain of an extensible thread pulled with 2 N vs ``F / (E A)``, within 2% for 1, 2 and 4
+    solver sweeps per substep.
+
+    The thread's compliance must not depend on how many sweeps a substep takes: the rod's multipliers start
+    from zero once per substep and accumulate over its sweeps. Measured: the largest relative strain error of
+    any segment at the end of the run, over the three sweep counts (settings in :data:`THREAD_EXTENSION`,
+    1 ms substeps, no gravity, node 0 pinned).
+    """
+    c = THREAD_EXTENSION
+    params = SutureParams(length=c["length_m"], node_count=c["node_count"], inextensible=False)
+    ea = params.material.youngs_modulus * math.pi * params.radius**2
+    reference = c["force_N"] / ea
+    runs = {sweeps: _thread_extension_run(sweeps) for sweeps in c["sweeps"]}
+    errors = {sweeps: float(np.abs(run["strain"] / reference - 1.0).max()) for sweeps, run in runs.items()}
+    return CheckResult(
+        name="thread_extension_sweeps",
+        measured=max(errors.values()),
+        reference=0.0,
+        tolerance=0.02,
+        unit="rel",
+        comparison="<=",
+        settings={
+            "suture_material": asdict(params.material),
+            "radius_m": params.radius,
+            **{k: list(v) if isinstance(v, tuple) else v for k, v in c.items()},
+            "inextensible": False,
+            "clamp": "node 0 pinned; force on the last node along the thread",
+            "gravity_m_s2": 0.0,
+            "tissue_integrator": "xpbd (no tissue)",
+            **_solver_settings(DT),
+        },
+        details={
+            "reference_strain": reference,
+            "ea_N": ea,
+            **{
+                f"sweeps_{sweeps}": {
+                    "rel_error": errors[sweeps],
+                    "mean_strain": float(run["strain"].mean()),
+                    "stiffness_ratio": reference / float(run["strain"].mean()),
+                    "settled_strain_change": run["settled_change"],
+                }
+                for sweeps, run in runs.items()
+            },
+        },
+    )
+
+
 # ---------------------------------------------------------------------------------------------------------
 # Rod statics
 # ---------------------------------------------------------------------------------------------------------
