@@ -415,6 +415,24 @@ def test_compliant_stretch_matches_hooke():
     np.testing.assert_allclose(segment_strain(model, state), 1.0 / ea, rtol=1e-4)
 
 
+@pytest.mark.parametrize("sweeps", [1, 2, 4])
+def test_compliant_stretch_does_not_depend_on_the_sweeps(sweeps):
+    """An extensible thread pulled with 2 N keeps the strain T / (E A) whatever the solver's sweeps per substep:
+    its multipliers accumulate over all the sweeps of a substep."""
+    model = small_rod(inextensible=False, damping=20.0)
+    system = Model(suture=model, gravity=(0.0, 0.0, 0.0))
+    state = State.initial(system, suture=RodState.straight(model, [0.0, 0.0, 0.0], [1.0, 0.0, 0.0]))
+    force = np.zeros((model.node_count, 3))
+    force[-1] = [2.0, 0.0, 0.0]
+    control = Control(suture_force=force)
+    solver = Solver(iterations=sweeps, max_speed=1.0e3, tissue_integrator="xpbd")
+    for _ in range(100):
+        solver.step(system, state, control, 1e-3)
+    assert not state.diverged
+    ea = model.params.material.youngs_modulus * math.pi * model.radius**2
+    np.testing.assert_allclose(segment_strain(model, state.suture), 2.0 / ea, rtol=0.02)
+
+
 def test_needle_attachment_is_two_way_and_conserves_momentum():
     model = RodModel.from_params(SutureParams(node_count=25, length=0.025, damping=0.0))
     needle = NeedleModel.from_shape()

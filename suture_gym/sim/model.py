@@ -485,7 +485,7 @@ class Work:
     """Buffers the solver reuses every substep for one model and one state (see :attr:`State.work`).
 
     They carry no information from one substep to the next: the detection refits the BVHs and rebuilds the
-    coupling rows, and the solver loads the rod's warm start from the State before each projection.
+    coupling rows, and the solver loads the rod's warm start from the State before each substep's sweeps.
 
     Attributes:
         model: the :class:`Model` the buffers were sized for (compared by identity).

@@ -23,7 +23,8 @@
    (:mod:`suture_gym.sim.coupling`); last the suture's direct solve (inextensibility, bending, two-way swage
    attachment, its contacts with the static obstacles ``Model.obstacles`` and its node-triangle contacts with
    the tissue as one-sided rows; up to ``rod_iterations`` iterations, see :meth:`Solver._project_suture`), so a
-   substep ends with the thread at its rest length.
+   substep ends with the thread at its rest length. The suture's multipliers start from zero once per substep,
+   after detection (:meth:`Solver._begin_suture`), and accumulate over its iterations in every sweep.
 4. **Velocities** (:meth:`Solver._update_velocities`): ``v = (x - x_prev) / dt`` for tissue particles and
    suture nodes (then the obstacles' Coulomb friction on the suture nodes their contacts pushed,
    :func:`~suture_gym.sim.rod.friction_kernel`), the needle's linear and angular velocity from its pose
@@ -351,6 +352,8 @@ class Solver:
             return
         self._detect(model, state, dt)
         self._begin_rows(model, state, dt)
+        if model.suture is not None:
+            self._begin_suture(state)
         clock.lap("detect")
         for sweep in range(self.iterations):
             self._project(model, state, dt, first_sweep=sweep == 0, last_sweep=sweep == self.iterations - 1)
@@ -673,11 +676,27 @@ class Solver:
             work.access_lambda, needle_state.body_pos, needle_state.body_quat, suture_q, tissue_q,
         )  # fmt: skip
 
+    @staticmethod
+    def _begin_suture(state: State) -> None:
+        """Start the suture's substep, once before the sweeps: its multipliers (``RodWork.lam``) start from zero
+        here and accumulate over every iteration of every sweep's solve (:meth:`_project_suture`), so each
+        iteration's XPBD step ``(J W J^T + alpha~) dlambda = -C - alpha~ lambda`` sees the substep's whole
+        multiplier and a compliant (extensible) thread has its material's compliance for any number of sweeps.
+        Also the geometric-stiffness warm start (``state.suture_tension``, loaded as the stretch multipliers that
+        the rod's ``begin`` reads it from), the frames' start orientations, the obstacles' pushes (their Coulomb
+        friction after the substep) and the friction rows' caps (a friction row, once made, stays for the
+        substep)."""
+        work = state.work.rod_work
+        work.lam[:] = 0.0
+        work.lam[1:, 0] = state.suture_tension
+        work.begin(state.suture)
+        work.contact_cap[:] = 0.0
+
     def _project_suture(self, model: Model, state: State, dt: float) -> None:
-        """The suture's direct solve (iterations of :func:`~suture_gym.sim.rod.rod_solve_iteration`'s kernel, its
-        contact rows made two-way with the tissue: :func:`suture_contact_kernel`, :func:`suture_reaction_kernel`),
-        warm-started from ``state.suture_tension``, up to ``rod_iterations`` iterations until its residual is
-        below ``rod_tolerance``.
+        """The suture's direct solve in one sweep (iterations of :func:`~suture_gym.sim.rod.rod_solve_iteration`'s
+        kernel, its contact rows made two-way with the tissue: :func:`suture_contact_kernel`,
+        :func:`suture_reaction_kernel`), up to ``rod_iterations`` iterations until its residual is below
+        ``rod_tolerance``, continuing from the multipliers of the substep's earlier sweeps (:meth:`_begin_suture`).
 
         Before each iteration every node's contact row is reset to the static obstacles' (``model.obstacles``;
         none: no row) at the current positions (as :func:`~suture_gym.sim.rod.rod_detect_contacts`). With coupling,
@@ -685,21 +704,16 @@ class Solver:
         (:func:`~suture_gym.sim.coupling.embedded_inv_mass`), and the suture's node-triangle rows enter the solve
         as one-sided contact rows, in place of an obstacle's where theirs is the smaller gap
         (:func:`~suture_gym.sim.coupling.suture_contact_rows`); after each iteration the tissue takes their
-        reaction (:func:`~suture_gym.sim.coupling.apply_contact_reaction`). The warm start is loaded as the
-        stretch multipliers that the rod's ``begin`` reads it from. The contact set is warm-started too: in the
-        first iteration only the nodes of ``state.suture_contact`` (those that pushed at the end of the last
-        substep) open a contact row where they penetrate, the others from the second on (with ``rod_iterations``
-        1, all of them in the one iteration); on the hand's scene this
+        reaction (:func:`~suture_gym.sim.coupling.apply_contact_reaction`). The contact set is warm-started: in
+        the solve's first iteration only the nodes of ``state.suture_contact`` (those that pushed at the end of the
+        last solve) and those that push already open a contact row where they penetrate, the others from the
+        second on (with ``rod_iterations`` 1, all of them in the one iteration); on the hand's scene this
         took the thread's iterations from 5.2 to 4.0 a substep (its tail peeling off the ground had been released
         by the active-set passes one node at a time in every substep, docs/design.md). The number of solves goes
         to ``state.work.rod_solves``; the nodes that push at the end, to ``state.suture_contact``.
         """
         suture, rod_state, work = model.suture, state.suture, state.work.rod_work
         coupling, cwork = model.coupling, state.work.coupling_work
-        work.lam[:] = 0.0
-        work.lam[1:, 0] = state.suture_tension
-        work.begin(rod_state)
-        work.contact_cap[:] = 0.0
         coupled = friction = None
         if coupling is None:
             rod, needle, needle_pos, needle_quat = rod_kernel_args(suture, work, model.needle, state.needle)
