@@ -23,6 +23,7 @@ FAST_CHECKS = (
     "suture_pull_jitter",
     "rod_cantilever",
     "rod_dt_independence",
+    "thread_extension_sweeps",
     "tip_force_profile",
     "env_needle_insert_scripted_accuracy",
 )
