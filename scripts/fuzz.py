@@ -65,6 +65,7 @@ import numpy as np  # noqa: E402
 import yaml  # noqa: E402
 from tqdm import tqdm  # noqa: E402
 
+from suture_gym.baselines.evaluation import episode_end  # noqa: E402
 from suture_gym.configs import ENV_DIR  # noqa: E402
 from suture_gym.envs import ENV_IDS, GOAL_ENV_IDS  # noqa: E402
 from suture_gym.envs.config import ACTION_MODES  # noqa: E402
@@ -74,7 +75,7 @@ STRATEGIES = ("random", "corner", "bang_bang", "tiny", "extreme", "scripted_abor
 #: The aborts of ``scripted_abort``, each a constant action in the box.
 ABORTS = ("push", "pull", "twist", "yank")
 #: How an episode ends that counts as a failure (:func:`_end_reason`).
-FAILURE_ENDS = ("tear", "out_of_workspace", "missed", "diverged", "terminated")
+FAILURE_ENDS = ("tear", "out_of_workspace", "missed", "diverged", "crushed", "terminated")
 #: Exceptions reported with their traceback (the rest are counted, and listed in ``events``).
 EXCEPTION_SAMPLES = 10
 #: Events listed with their reproducers (the rest are counted).
@@ -250,11 +251,7 @@ def _name(case: dict) -> str:
 
 
 def _end_reason(info: dict, terminated: bool) -> str:
-    for reason, key in (("success", "is_success"), ("diverged", "diverged"), ("tear", "tear"),
-                        ("out_of_workspace", "out_of_workspace"), ("missed", "missed")):
-        if info.get(key):
-            return reason
-    return "terminated" if terminated else "truncated"
+    return episode_end(info, terminated, not terminated)
 
 
 def _make(case: dict) -> gym.Env:

@@ -43,15 +43,16 @@ class Episode:
 #: Policy names that are not saved models: a random policy, the scripted expert and its feedback variant
 #: (:class:`suture_gym.baselines.expert.FeedbackExpert`, DAgger's oracle).
 SCRIPTED = ("random", "expert", "feedback_expert")
-ENDS = ("success", "diverged", "tear", "out_of_workspace", "missed", "time_limit", "terminated")
+ENDS = ("success", "diverged", "crushed", "tear", "out_of_workspace", "missed", "time_limit", "terminated")
 
 
 def episode_end(info: dict, terminated: bool, truncated: bool) -> str:
     """One of :data:`ENDS` for an episode whose last step returned ``info``, ``terminated``, ``truncated``:
-    the SutureGym flags first (``is_success``, ``diverged``, ``tear``, ``out_of_workspace``, ``missed``), then
+    the SutureGym flags first (``is_success``, ``diverged``, ``crushed``, ``tear``, ``out_of_workspace``,
+    ``missed``), then
     ``time_limit`` for a truncation, else ``terminated`` (an env without those flags)."""
-    for name, key in (("success", "is_success"), ("diverged", "diverged"), ("tear", "tear"),
-                      ("out_of_workspace", "out_of_workspace"), ("missed", "missed")):
+    for name, key in (("success", "is_success"), ("diverged", "diverged"), ("crushed", "crushed"),
+                      ("tear", "tear"), ("out_of_workspace", "out_of_workspace"), ("missed", "missed")):
         if info.get(key, False):
             return name
     return "time_limit" if truncated and not terminated else "terminated"
