@@ -91,6 +91,9 @@ ESTIMATED_STEP_LIMIT = CONVERGED_SPEED / 5.0
 TRUSTED_FIRST_STEP = 2.0
 #: Most iterations a quasi-Newton solve adds to its set ones to pass :data:`CONVERGED_SPEED`.
 MAX_EXTRA_ITERATIONS = 8
+#: Time schemes of the implicit integrators (``Solver.tissue_scheme``): ``"euler"`` (implicit Euler) and
+#: ``"bdf2"`` (the second-order backward differentiation formula, its first substep on an extrapolated history).
+TISSUE_SCHEMES = ("euler", "bdf2")
 
 
 @njit(cache=True)
@@ -105,6 +108,52 @@ def _begin_substep(q, y, external, free, gravity, h2, roller_particle, roller_ax
             y[p, i] = q[p, i]
             external[p, i] = 0.0
             q[p, i] -= gravity[i] * h2 * free[p, i]
+
+
+@njit(cache=True)
+def _begin_bdf2(q, q_prev, qd, y, xhat, external, free, gravity, h, beta, decay, damping, history_x, history_v,
+                valid, roller_particle, roller_axis, roller_value) -> None:
+    """BDF2's substep start: rollers on their planes, then on the free dofs (``free`` the float mask) from ``x_n =
+    q_prev`` and ``v_n``, recovered from the predicted velocity ``qd = decay v_n + g h`` (``decay`` (N,) the
+    prediction's ``exp(-c h)``), and the history ``x_{n-1}, v_{n-1}`` (``history_x``, ``history_v``; if not
+    ``valid``, the constant-velocity ``x_n - h v_n, v_n``): ``xhat = (4 x_n - x_{n-1}) / 3``, ``vhat = (4 v_n -
+    v_{n-1}) / 3``, ``y = xhat + beta (vhat + beta g) / (1 + beta c)`` (``beta = 2 h / 3``, ``c`` = ``damping``
+    (N,) 1/s, taken implicitly), the warm start ``q = xhat + beta vhat / (1 + beta c)``; ``history_*`` become
+    ``x_n, v_n``, ``external`` 0. Held dofs: ``y = q``."""
+    for r in range(roller_particle.shape[0]):
+        q[roller_particle[r], roller_axis[r]] = roller_value[r]
+    for p in range(q.shape[0]):
+        scale = beta / (1.0 + beta * damping[p])
+        for i in range(3):
+            external[p, i] = 0.0
+            if free[p, i] == 0.0:
+                y[p, i] = q[p, i]
+                xhat[p, i] = q_prev[p, i]
+                continue
+            x_n = q_prev[p, i]
+            v_n = (qd[p, i] - gravity[i] * h) / decay[p]
+            if valid:
+                x_old, v_old = history_x[p, i], history_v[p, i]
+            else:
+                x_old, v_old = x_n - h * v_n, v_n
+            hat = (4.0 * x_n - x_old) / 3.0
+            vhat = (4.0 * v_n - v_old) / 3.0
+            xhat[p, i] = hat
+            q[p, i] = hat + scale * vhat
+            y[p, i] = q[p, i] + scale * beta * gravity[i]
+            history_x[p, i] = x_n
+            history_v[p, i] = v_n
+
+
+@njit(cache=True)
+def _finish_bdf2(q, xhat, free, inv_beta, qd, last) -> None:
+    """BDF2's velocity ``v_{n+1} = (x_{n+1} - xhat) / beta`` (``inv_beta`` 1/s) on the free dofs of ``qd`` (N, 3)
+    m/s; ``last <- q`` (the positions the next substep's history must start from)."""
+    for p in range(q.shape[0]):
+        for i in range(3):
+            last[p, i] = q[p, i]
+            if free[p, i] != 0.0:
+                qd[p, i] = (q[p, i] - xhat[p, i]) * inv_beta
 
 
 @njit(cache=True)
@@ -299,11 +348,35 @@ class ImplicitTissue:
         dt: substep, s.
     """
 
-    def __init__(self, tissue, dt: float):
+    def __init__(self, tissue, dt: float, scheme: str = "euler"):
         check_material_range(tissue)
+        if scheme not in TISSUE_SCHEMES:
+            raise ValueError(f"Solver.tissue_scheme must be one of {TISSUE_SCHEMES}, got {scheme!r}")
         self.tissue = tissue
         self.dt = float(dt)
+        self.scheme = scheme
         self.inv_h2 = 1.0 / (self.dt * self.dt)
+        #: ``(N,)`` kg: the masses of the inertia term ``1 / (2 h^2) (x - y)^T M (x - y)``: the particles' own with
+        #: implicit Euler; with BDF2 ``m (1 + beta c) (h / beta)^2`` (``beta = 2 h / 3``, ``c`` the material
+        #: damping, 1/s), which makes the term BDF2's ``(1 + beta c) / (2 beta^2) (x - y)^T M (x - y)`` while the
+        #: coupling rows' impulses keep turning into forces over ``h^2`` (their momentum is the needle's).
+        self.mass = np.array(tissue.particle_mass, dtype=np.float64)
+        self.beta = self.dt
+        if scheme == "bdf2":
+            self.beta = 2.0 * self.dt / 3.0
+            self.mass = self.mass * (1.0 + self.beta * tissue.particle_damping) * (self.dt / self.beta) ** 2
+        self._decay = np.exp(-np.asarray(tissue.particle_damping, dtype=np.float64) * self.dt)
+        self._xhat = np.zeros((tissue.particle_count, 3))
+        self._history_x = np.zeros((tissue.particle_count, 3))
+        self._history_v = np.zeros((tissue.particle_count, 3))
+        #: The positions the last substep ended on (BDF2: its history is valid for a substep that starts there).
+        self._last_q = np.full((tissue.particle_count, 3), np.nan)
+        #: Largest gradient entry of ``Phi`` (N) at which a solve stops (``Solver.tissue_tolerance``; None: off).
+        self.tolerance: float | None = None
+        #: Quasi-Newton iterations (steps solved) in the current substep, and over all substeps: ``[substeps begun,
+        #: iterations, most in one finished substep]``.
+        self.substep_iterations = 0
+        self.iteration_stats = [0, 0, 0]
         self.free = _free_dofs(tissue)
         #: Each roller's constrained axis and the coordinate that puts its particle on its plane (m).
         normal = tissue.roller_normal
@@ -315,7 +388,7 @@ class ImplicitTissue:
         assemble_rest_system(
             tissue.tet_indices, tissue.tet_dm_inv, tissue.tet_rest_volume, tissue.tet_mu,
             tissue.tet_lambda, pattern.entry, pattern.diagonal,
-            np.repeat(tissue.particle_mass, 3)[self.free_index] * self.inv_h2, data,
+            np.repeat(self.mass, 3)[self.free_index] * self.inv_h2, data,
         )  # fmt: skip
         n = self.free_index.size
         self.factor = SparseCholesky(sp.csc_matrix((data, pattern.indices, pattern.indptr), shape=(n, n)))
@@ -364,22 +437,52 @@ class ImplicitTissue:
         self.compliance = (tissue.particle_inv_mass, self._slot, np.zeros(0, np.int32), np.zeros((0, 0)),
                            self._impulse)  # fmt: skip
 
-    def begin(self, q: np.ndarray, gravity: np.ndarray) -> None:
-        """Store the inertial target ``y`` (the predicted ``q``) and move ``q`` to the warm start
-        ``y - h^2 g = x_prev + h v`` on the free dofs. Axis-aligned roller axes are set on their planes."""
+    def begin(self, q: np.ndarray, gravity: np.ndarray, q_prev: np.ndarray | None = None,
+              qd: np.ndarray | None = None) -> None:
+        """Store the inertial target ``y`` and move ``q`` (the predicted positions) to the warm start on the free
+        dofs; axis-aligned roller axes are set on their planes. Implicit Euler: ``y = q`` (``x_prev + h v + h^2
+        g``), warm start ``y - h^2 g``. BDF2 (:func:`_begin_bdf2`) also needs the substep's start ``q_prev`` (m)
+        and the predicted velocity ``qd`` (m/s); its history is the last substep's if ``q_prev`` is where that one
+        ended, else extrapolated at constant velocity."""
         self.rows_move = 0.0
         self.unconverged = False
         self.sweeps_done = False
-        _begin_substep(q, self.y, self.external, self.free_mask, gravity, self.dt * self.dt,
-                       self.tissue.roller_particle, self.roller_axis, self.roller_value)  # fmt: skip
+        stats = self.iteration_stats
+        stats[0] += 1
+        stats[2] = max(stats[2], self.substep_iterations)
+        self.substep_iterations = 0
+        t = self.tissue
+        if self.scheme == "euler":
+            _begin_substep(q, self.y, self.external, self.free_mask, gravity, self.dt * self.dt,
+                           t.roller_particle, self.roller_axis, self.roller_value)  # fmt: skip
+            return
+        if q_prev is None or qd is None:
+            raise ValueError("ImplicitTissue.begin with tissue_scheme 'bdf2' needs q_prev and qd")
+        valid = bool(np.array_equal(q_prev, self._last_q))
+        _begin_bdf2(q, q_prev, qd, self.y, self._xhat, self.external, self.free_mask, gravity, self.dt, self.beta,
+                    self._decay, t.particle_damping, self._history_x, self._history_v, valid, t.roller_particle,
+                    self.roller_axis, self.roller_value)  # fmt: skip
+
+    def finish(self, q: np.ndarray, qd: np.ndarray) -> None:
+        """End of the substep, after the solver's velocities ``qd = (q - q_prev) / h`` (m/s): BDF2 replaces them on
+        the free dofs by its own, ``(q - xhat) / beta`` (:func:`_finish_bdf2`), and remembers ``q`` (m); implicit
+        Euler keeps them."""
+        if self.scheme == "bdf2":
+            _finish_bdf2(q, self._xhat, self.free_mask, 1.0 / self.beta, qd, self._last_q)
+
+    def iteration_summary(self) -> dict:
+        """Quasi-Newton iterations per substep over the substeps begun so far (the current one included):
+        ``{"substeps", "mean", "max"}``."""
+        substeps, total, most = self.iteration_stats
+        return {"substeps": substeps, "mean": total / substeps if substeps else 0.0,
+                "max": max(most, self.substep_iterations)}  # fmt: skip
 
     def potential(self, q: np.ndarray, with_gradient: bool = True) -> float:
         """``Phi(q) - f_ext . q`` (J) of the current substep, ``f_ext`` the coupling rows' forces of the
         earlier sweeps of this substep (:attr:`external`, N); writes its gradient into ``self.grad`` (N) unless
         ``with_gradient`` is False."""
-        t = self.tissue
         return potential_kernel(
-            q, self.y, t.particle_mass, self.free_mask, self.inv_h2, self._tet_columns, self._potential_scratch,
+            q, self.y, self.mass, self.free_mask, self.inv_h2, self._tet_columns, self._potential_scratch,
             self.external, self.grad, with_gradient,
         )  # fmt: skip
 
@@ -507,7 +610,10 @@ class QuasiNewton(ImplicitTissue):
         evaluations of ``Phi`` (the last one without the gradient); a large last step costs a gradient and a
         solve more, the convergence test's, whose step is taken only if it fails.
         """
-        phi = self._iterate(q, iterations, converge)
+        if self.tolerance is None:
+            phi = self._iterate(q, iterations, converge)
+        else:
+            phi = self._iterate_to_tolerance(q, iterations, converge)
         self._solved_q[...] = q
         self._solved_external[...] = self.external
         self._solved_phi = phi
@@ -523,6 +629,8 @@ class QuasiNewton(ImplicitTissue):
             step = self.factor.solve(_gather(self.grad.reshape(-1), free, self._free_grad))
             if iteration >= iterations and not np.max(np.abs(step), initial=0.0) > converged:
                 return phi
+            self.substep_iterations += 1
+            self.iteration_stats[1] += 1
             size = _add_at(flat, free, step, -1.0)  # the step is -A0^-1 grad
             large = iteration == iterations - 1 and size > self.large_step
             test_next = iteration != iterations - 1 or (large and converge)
@@ -549,6 +657,41 @@ class QuasiNewton(ImplicitTissue):
             phi = trial
             if not test_next:
                 return phi
+        return phi
+
+    def _iterate_to_tolerance(self, q: np.ndarray, iterations: int, converge: bool) -> float:
+        """The steps of :meth:`solve` with :attr:`tolerance` set: steps ``-A0^-1 grad Phi`` (each checked against
+        ``Phi`` and halved as in :meth:`_iterate`) until the largest entry of ``grad Phi`` on the free dofs is at
+        most :attr:`tolerance` (N), at most ``iterations`` of them. A solve that stops short of the tolerance
+        without ``converge`` (a sweep before the last) sets :attr:`unconverged`. Returns ``Phi`` at the final
+        ``q`` (J)."""
+        flat = q.reshape(-1)
+        free = self.free_index
+        phi = self.potential(q)
+        self.unconverged = False
+        for _ in range(iterations):
+            gradient = _gather(self.grad.reshape(-1), free, self._free_grad)
+            if not np.max(np.abs(gradient), initial=0.0) > self.tolerance:
+                return phi
+            step = self.factor.solve(gradient)
+            self.substep_iterations += 1
+            self.iteration_stats[1] += 1
+            _add_at(flat, free, step, -1.0)
+            trial = self.potential(q)
+            bound = phi + ROUNDOFF * abs(phi)
+            halvings = 0
+            while not trial <= bound and halvings < MAX_HALVINGS:
+                step *= 0.5
+                _add_at(flat, free, step, 1.0)
+                trial = self.potential(q)
+                halvings += 1
+            if not trial <= bound:
+                _add_at(flat, free, step, 1.0)
+                phi = self.potential(q)
+                break
+            phi = trial
+        gradient = _gather(self.grad.reshape(-1), free, self._free_grad)
+        self.unconverged = not converge and np.max(np.abs(gradient), initial=0.0) > self.tolerance
         return phi
 
     def rows_linear(self, q: np.ndarray) -> bool:
@@ -581,8 +724,8 @@ class VertexBlockDescent(ImplicitTissue):
     name = "vbd"
     chebyshev_rho = 0.0
 
-    def __init__(self, tissue, dt: float):
-        super().__init__(tissue, dt)
+    def __init__(self, tissue, dt: float, scheme: str = "euler"):
+        super().__init__(tissue, dt, scheme)
         tissue = self.tissue
         active = np.flatnonzero(self.free.any(axis=1)).astype(np.int32)
         self.vertex_order = active
@@ -606,7 +749,7 @@ class VertexBlockDescent(ImplicitTissue):
         omega = 1.0
         for k in range(iterations):
             vbd_sweep(
-                q, self.y, t.particle_mass, self.free, self.inv_h2, t.tet_indices, t.tet_dm_inv, t.tet_rest_volume,
+                q, self.y, self.mass, self.free, self.inv_h2, t.tet_indices, t.tet_dm_inv, t.tet_rest_volume,
                 t.tet_mu, t.tet_lambda, self.vertex_order, self.adjacency_offsets, self.adjacency_tet,
                 self.adjacency_corner,
             )  # fmt: skip
@@ -623,10 +766,11 @@ class VertexBlockDescent(ImplicitTissue):
 _KINDS = {"quasi_newton": QuasiNewton, "vbd": VertexBlockDescent}
 
 
-def implicit_tissue(tissue, kind: str, dt: float) -> ImplicitTissue:
-    """A new :class:`ImplicitTissue` of ``kind`` (:data:`IMPLICIT_INTEGRATORS`) for ``tissue`` and ``dt`` (s):
+def implicit_tissue(tissue, kind: str, dt: float, scheme: str = "euler") -> ImplicitTissue:
+    """A new :class:`ImplicitTissue` of ``kind`` (:data:`IMPLICIT_INTEGRATORS`) for ``tissue``, ``dt`` (s) and
+    time ``scheme`` (:data:`TISSUE_SCHEMES`):
     the rest system factorised once (the solver keeps it in ``State.work``, see
     :meth:`~suture_gym.sim.model.Work.tissue_integrator`)."""
     if kind not in _KINDS:
         raise ValueError(f"tissue_integrator must be one of {('xpbd', *IMPLICIT_INTEGRATORS)}, got {kind!r}")
-    return _KINDS[kind](tissue, dt)
+    return _KINDS[kind](tissue, dt, scheme)
