@@ -91,6 +91,10 @@ ESTIMATED_STEP_LIMIT = CONVERGED_SPEED / 5.0
 TRUSTED_FIRST_STEP = 2.0
 #: Most iterations a quasi-Newton solve adds to its set ones to pass :data:`CONVERGED_SPEED`.
 MAX_EXTRA_ITERATIONS = 8
+#: Range of the factor a quasi-Newton step solved to a tolerance is scaled by (the secant root of ``Phi``'s slope
+#: along it, :meth:`QuasiNewton._iterate_to_tolerance`), and the least change of it that is tried.
+LINE_SEARCH_RANGE = (0.25, 4.0)
+LINE_SEARCH_MIN_CHANGE = 0.1
 #: Time schemes of the implicit integrators (``Solver.tissue_scheme``): ``"euler"`` (implicit Euler) and
 #: ``"bdf2"`` (the second-order backward differentiation formula, its first substep on an extrapolated history).
 TISSUE_SCHEMES = ("euler", "bdf2")
@@ -660,15 +664,20 @@ class QuasiNewton(ImplicitTissue):
         return phi
 
     def _iterate_to_tolerance(self, q: np.ndarray, iterations: int, converge: bool) -> float:
-        """The steps of :meth:`solve` with :attr:`tolerance` set: steps ``-A0^-1 grad Phi`` (each checked against
-        ``Phi`` and halved as in :meth:`_iterate`) until the largest entry of ``grad Phi`` on the free dofs is at
-        most :attr:`tolerance` (N), at most ``iterations`` of them. A solve that stops short of the tolerance
-        without ``converge`` (a sweep before the last) sets :attr:`unconverged`. Returns ``Phi`` at the final
-        ``q`` (J)."""
+        """The steps of :meth:`solve` with :attr:`tolerance` set, until the largest entry of ``grad Phi`` on the free
+        dofs is at most :attr:`tolerance` (N), at most ``iterations`` of them. Each step ``p = -A0^-1 grad Phi`` is
+        scaled by the secant root of ``Phi``'s slope along it (slopes ``g0.p`` and ``g1.p`` at ``x`` and ``x + p``,
+        the latter from the gradient the step's check computes anyway; within :data:`LINE_SEARCH_RANGE`), kept only
+        if it lowers ``Phi`` further: ``A0`` is the rest stiffness, too stiff along a rotation and off along a large
+        stretch, where the plain steps converge slowly (docs/notes/tissue_integrator.md); the scaling costs a
+        potential pass where it moves. A step that raised ``Phi`` is halved as in
+        :meth:`_iterate`. A solve that stops short of the tolerance without ``converge`` (a sweep before the last)
+        sets :attr:`unconverged`. Returns ``Phi`` at the final ``q`` (J)."""
         flat = q.reshape(-1)
         free = self.free_index
         phi = self.potential(q)
         self.unconverged = False
+        low, high = LINE_SEARCH_RANGE
         for _ in range(iterations):
             gradient = _gather(self.grad.reshape(-1), free, self._free_grad)
             if not np.max(np.abs(gradient), initial=0.0) > self.tolerance:
@@ -676,9 +685,23 @@ class QuasiNewton(ImplicitTissue):
             step = self.factor.solve(gradient)
             self.substep_iterations += 1
             self.iteration_stats[1] += 1
+            slope = -float(gradient @ step)  # along p = -step, at x
             _add_at(flat, free, step, -1.0)
             trial = self.potential(q)
             bound = phi + ROUNDOFF * abs(phi)
+            if trial <= bound:
+                end_slope = -float(_gather(self.grad.reshape(-1), free, self._free_grad) @ step)
+                scale = slope / (slope - end_slope) if slope != end_slope else 1.0
+                scale = min(max(scale, low), high)
+                if abs(scale - 1.0) > LINE_SEARCH_MIN_CHANGE:
+                    extra = step * (scale - 1.0)
+                    _add_at(flat, free, extra, -1.0)
+                    scaled = self.potential(q)
+                    if scaled <= trial:
+                        trial = scaled
+                    else:
+                        _add_at(flat, free, extra, 1.0)
+                        trial = self.potential(q)
             halvings = 0
             while not trial <= bound and halvings < MAX_HALVINGS:
                 step *= 0.5
