@@ -544,6 +544,10 @@ def test_a_solve_with_a_tolerance_iterates_until_the_gradient_is_below_it():
     capped.tolerance = 1e-9
     capped.solve(q_capped, 1, converge=False)  # a first sweep's solve stopped by the cap is left unconverged
     assert capped.substep_iterations == 1 and capped.unconverged
+    loose, q_loose, _ = _loaded_state("quasi_newton", 3.0e4)
+    loose.tolerance = 1e3  # above every force: the first step is still taken, and only it
+    loose.solve(q_loose, 50)
+    assert loose.substep_iterations == 1
 
 
 def test_solver_options_are_validated_naming_the_field():

@@ -286,9 +286,9 @@ class Solver:
             the tets, and the coupling rows see the tissue's substep compliance.
         tissue_iterations: inner iterations of an implicit tissue integrator per sweep (>= 1; unused by XPBD);
             with ``tissue_tolerance`` the most a solve may take.
-        tissue_tolerance: N (>= 0): if positive, a quasi-Newton solve iterates until the largest entry of the
-            incremental potential's gradient (a force on a particle's axis) is at most this, up to
-            ``tissue_iterations`` steps; 0 (the default): ``tissue_iterations`` steps with the large-step
+        tissue_tolerance: N (>= 0): if positive, a quasi-Newton solve takes one step, then more until the largest
+            entry of the incremental potential's gradient (a force on a particle's axis) is at most this, up to
+            ``tissue_iterations`` steps in all; 0 (the default): ``tissue_iterations`` steps with the large-step
             convergence test of :meth:`~suture_gym.sim.tissue_implicit.QuasiNewton.solve`.
         tissue_scheme: time scheme of an implicit tissue integrator (:data:`~suture_gym.sim.tissue_implicit.
             TISSUE_SCHEMES`): ``"euler"`` (implicit Euler, the default; its numerical damping grows with

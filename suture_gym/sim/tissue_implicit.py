@@ -664,8 +664,10 @@ class QuasiNewton(ImplicitTissue):
         return phi
 
     def _iterate_to_tolerance(self, q: np.ndarray, iterations: int, converge: bool) -> float:
-        """The steps of :meth:`solve` with :attr:`tolerance` set, until the largest entry of ``grad Phi`` on the free
-        dofs is at most :attr:`tolerance` (N), at most ``iterations`` of them. Each step ``p = -A0^-1 grad Phi`` is
+        """The steps of :meth:`solve` with :attr:`tolerance` set: one, then more until the largest entry of ``grad
+        Phi`` on the free dofs is at most :attr:`tolerance` (N), at most ``iterations`` in all. (The first is always
+        taken: it is exact for linear elasticity, and a soft body's whole elastic force can be below a tolerance
+        that suits a stiff one.) Each step ``p = -A0^-1 grad Phi`` is
         scaled by the secant root of ``Phi``'s slope along it (slopes ``g0.p`` and ``g1.p`` at ``x`` and ``x + p``,
         the latter from the gradient the step's check computes anyway; within :data:`LINE_SEARCH_RANGE`), kept only
         if it lowers ``Phi`` further: ``A0`` is the rest stiffness, too stiff along a rotation and off along a large
@@ -678,9 +680,9 @@ class QuasiNewton(ImplicitTissue):
         phi = self.potential(q)
         self.unconverged = False
         low, high = LINE_SEARCH_RANGE
-        for _ in range(iterations):
+        for iteration in range(iterations):
             gradient = _gather(self.grad.reshape(-1), free, self._free_grad)
-            if not np.max(np.abs(gradient), initial=0.0) > self.tolerance:
+            if iteration > 0 and not np.max(np.abs(gradient), initial=0.0) > self.tolerance:
                 return phi
             step = self.factor.solve(gradient)
             self.substep_iterations += 1
