@@ -408,12 +408,17 @@ def _press(youngs: float, force: float, solver: Solver, seconds: float = 0.4):
     return scene, tip_z0 - float(tip[2])
 
 
-def test_needle_load_reaches_the_implicit_tissue_and_its_base():
-    """1 N tip on a 100 kPa pad at 1 ms, quasi-Newton with two sweeps: no divergence, the tissue comes to rest,
-    the tip dents it by under a cell, and the pinned base carries the tissue's weight plus the push."""
+BDF2_TOLERANCE = {"tissue_scheme": "bdf2", "tissue_tolerance": 1e-6, "tissue_iterations": 20}
+
+
+@pytest.mark.parametrize("options", [{}, {"tissue_scheme": "bdf2"}, BDF2_TOLERANCE])
+def test_needle_load_reaches_the_implicit_tissue_and_its_base(options):
+    """1 N tip on a 100 kPa pad at 1 ms, quasi-Newton with two sweeps (implicit Euler, or BDF2 with or without a
+    tolerance): no divergence, the tissue comes to rest, the tip dents it by under a cell, and the pinned base
+    carries the tissue's weight plus the push."""
     from suture_gym.measure.tissue_stiff import _elastic_gradient
 
-    scene, dent = _press(1.0e5, 1.0, Solver(tissue_integrator="quasi_newton", iterations=2, max_speed=50.0))
+    scene, dent = _press(1.0e5, 1.0, Solver(tissue_integrator="quasi_newton", iterations=2, max_speed=50.0, **options))
     state, tissue = scene.state, scene.model.tissue
     assert not state.diverged
     assert np.abs(state.tissue.particle_qd).max() < 1e-2

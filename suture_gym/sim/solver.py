@@ -286,10 +286,11 @@ class Solver:
             the tets, and the coupling rows see the tissue's substep compliance.
         tissue_iterations: inner iterations of an implicit tissue integrator per sweep (>= 1; unused by XPBD);
             with ``tissue_tolerance`` the most a solve may take.
-        tissue_tolerance: N (>= 0): if positive, a quasi-Newton solve takes one step, then more until the largest
-            entry of the incremental potential's gradient (a force on a particle's axis) is at most this, up to
-            ``tissue_iterations`` steps in all; 0 (the default): ``tissue_iterations`` steps with the large-step
-            convergence test of :meth:`~suture_gym.sim.tissue_implicit.QuasiNewton.solve`.
+        tissue_tolerance: N (>= 0): if positive, a quasi-Newton solve in a substep no coupling row touches takes
+            one step, then more until the largest entry of the incremental potential's gradient (a force on a
+            particle's axis) is at most this, up to ``tissue_iterations`` steps in all (a substep with rows keeps
+            one step and the large-step test, :meth:`~suture_gym.sim.tissue_implicit.QuasiNewton.solve`); 0 (the
+            default): ``tissue_iterations`` steps with the large-step convergence test there.
         tissue_scheme: time scheme of an implicit tissue integrator (:data:`~suture_gym.sim.tissue_implicit.
             TISSUE_SCHEMES`): ``"euler"`` (implicit Euler, the default; its numerical damping grows with
             ``omega dt``) or ``"bdf2"`` (second order, far less numerical damping; material damping taken
