@@ -677,8 +677,8 @@ class QuasiNewton(ImplicitTissue):
         taken: it is exact for linear elasticity, and a soft body's whole elastic force can be below a tolerance
         that suits a stiff one.) Each step ``p = -A0^-1 grad Phi`` is
         scaled by the secant root of ``Phi``'s slope along it (slopes ``g0.p`` and ``g1.p`` at ``x`` and ``x + p``,
-        the latter from the gradient the step's check computes anyway; within :data:`LINE_SEARCH_RANGE`), kept only
-        if it lowers ``Phi`` further: ``A0`` is the rest stiffness, too stiff along a rotation and off along a large
+        the latter from the gradient the step's check computes anyway; within :data:`LINE_SEARCH_RANGE`) unless the
+        step met the tolerance, kept only if it lowers ``Phi`` further: ``A0`` is the rest stiffness, too stiff along a rotation and off along a large
         stretch, where the plain steps converge slowly (docs/notes/tissue_integrator.md); the scaling costs a
         potential pass where it moves. A step that raised ``Phi`` is halved as in
         :meth:`_iterate`. A solve that stops short of the tolerance without ``converge`` (a sweep before the last)
@@ -699,8 +699,9 @@ class QuasiNewton(ImplicitTissue):
             _add_at(flat, free, step, -1.0)
             trial = self.potential(q)
             bound = phi + ROUNDOFF * abs(phi)
-            if trial <= bound:
-                end_slope = -float(_gather(self.grad.reshape(-1), free, self._free_grad) @ step)
+            end_gradient = _gather(self.grad.reshape(-1), free, self._free_grad)
+            if trial <= bound and np.max(np.abs(end_gradient), initial=0.0) > self.tolerance:
+                end_slope = -float(end_gradient @ step)
                 scale = slope / (slope - end_slope) if slope != end_slope else 1.0
                 scale = min(max(scale, low), high)
                 if abs(scale - 1.0) > LINE_SEARCH_MIN_CHANGE:
