@@ -429,6 +429,8 @@ def test_needle_load_reaches_the_implicit_tissue_and_its_base(options):
     # the rows' impulses reach the tissue whole (the rows solve against its compliance among their vertices)
     assert support == pytest.approx(weight + state.coupling.tip_force, rel=0.01)
     assert state.coupling.tip_force == pytest.approx(1.0, rel=0.02)
+    scheme = options.get("tissue_scheme", "euler")
+    assert state.work.tissue_integrator("quasi_newton", 1e-3, scheme).substep_scheme == "euler"  # rows touch: Euler
 
 
 def test_a_state_can_change_integrator_between_steps_and_its_rows_follow():
@@ -567,7 +569,7 @@ def test_solver_options_are_validated_naming_the_field():
 
 
 @pytest.mark.parametrize("tolerance", [0.0, 1e-7])
-def test_bdf2_keeps_a_stiff_pad_at_rest(tolerance):
+def test_bdf2_keeps_a_stiff_pad_at_rest(tolerance):  # no coupling rows: every substep is BDF2
     scene = suturing_pad(size=(0.008, 0.008, 0.008), cells=(4, 4, 4), material=TissueMaterial(1.0e6, 0.45))
     solver = Solver(iterations=1, max_speed=50.0, tissue_scheme="bdf2", tissue_tolerance=tolerance)
     for _ in range(100):

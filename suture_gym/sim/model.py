@@ -527,7 +527,8 @@ class Work:
         current = self._tissue_integrator
         if current is None or current.name != kind or current.dt != float(dt) or current.scheme != scheme:
             current = implicit_tissue(self.model.tissue, kind, dt, scheme)
-            weakref.finalize(current, _drop_solve_buffer, current.factor).atexit = False
+            for factor in current.factors:
+                weakref.finalize(current, _drop_solve_buffer, factor).atexit = False
             self._tissue_integrator = current
         return current
 

@@ -363,12 +363,20 @@ class ImplicitTissue:
         #: ``(N,)`` kg: the masses of the inertia term ``1 / (2 h^2) (x - y)^T M (x - y)``: the particles' own with
         #: implicit Euler; with BDF2 ``m (1 + beta c) (h / beta)^2`` (``beta = 2 h / 3``, ``c`` the material
         #: damping, 1/s), which makes the term BDF2's ``(1 + beta c) / (2 beta^2) (x - y)^T M (x - y)`` while the
-        #: coupling rows' impulses keep turning into forces over ``h^2`` (their momentum is the needle's).
+        #: coupling rows' impulses keep turning into forces over ``h^2`` (their momentum is the needle's). Implicit
+        #: Euler's in a substep of a BDF2 integrator that coupling rows touch (:meth:`begin_rows`).
         self.mass = np.array(tissue.particle_mass, dtype=np.float64)
+        self._euler_mass = self.mass
         self.beta = self.dt
         if scheme == "bdf2":
             self.beta = 2.0 * self.dt / 3.0
-            self.mass = self.mass * (1.0 + self.beta * tissue.particle_damping) * (self.dt / self.beta) ** 2
+            self._bdf2_mass = self.mass * (1.0 + self.beta * tissue.particle_damping) * (self.dt / self.beta) ** 2
+        #: The scheme of the current substep: :attr:`scheme`, except ``"euler"`` in a substep of a BDF2 integrator
+        #: that coupling rows touch.
+        self.substep_scheme = scheme
+        self._predicted = np.zeros((tissue.particle_count, 3))
+        self._gravity = np.zeros(3)
+        self._q = self._predicted
         self._decay = np.exp(-np.asarray(tissue.particle_damping, dtype=np.float64) * self.dt)
         self._xhat = np.zeros((tissue.particle_count, 3))
         self._history_x = np.zeros((tissue.particle_count, 3))
@@ -388,14 +396,28 @@ class ImplicitTissue:
         self.roller_value = tissue.roller_offset / normal[np.arange(self.roller_axis.size), self.roller_axis]
         self.free_index = np.flatnonzero(self.free.ravel())
         pattern = rest_pattern(tissue, self.free_index)
-        data = np.zeros(pattern.indices.size)
-        assemble_rest_system(
-            tissue.tet_indices, tissue.tet_dm_inv, tissue.tet_rest_volume, tissue.tet_mu,
-            tissue.tet_lambda, pattern.entry, pattern.diagonal,
-            np.repeat(self.mass, 3)[self.free_index] * self.inv_h2, data,
-        )  # fmt: skip
-        n = self.free_index.size
-        self.factor = SparseCholesky(sp.csc_matrix((data, pattern.indices, pattern.indptr), shape=(n, n)))
+
+        def factorise(mass: np.ndarray) -> SparseCholesky:
+            data = np.zeros(pattern.indices.size)
+            assemble_rest_system(
+                tissue.tet_indices, tissue.tet_dm_inv, tissue.tet_rest_volume, tissue.tet_mu,
+                tissue.tet_lambda, pattern.entry, pattern.diagonal,
+                np.repeat(mass, 3)[self.free_index] * self.inv_h2, data,
+            )  # fmt: skip
+            n = self.free_index.size
+            return SparseCholesky(sp.csc_matrix((data, pattern.indices, pattern.indptr), shape=(n, n)))
+
+        #: The factorised implicit-Euler rest system ``A0 = M / h^2 + K0``: the solves of an Euler substep and the
+        #: coupling rows' compliance (cached columns of its inverse), with either scheme.
+        self.rest_factor = factorise(self._euler_mass)
+        #: The factor the current substep solves with: :attr:`rest_factor`, or BDF2's ``M' / h^2 + K0`` (``M'`` the
+        #: BDF2 masses above) in a BDF2 substep.
+        self.factor = self.rest_factor
+        #: Every factor this integrator holds.
+        self.factors = (self.rest_factor,)
+        if scheme == "bdf2":
+            self._bdf2_factor = factorise(self._bdf2_mass)
+            self.factors = (self.rest_factor, self._bdf2_factor)
         edges = tissue.particle_rest_q[tissue.tet_indices[:, [1, 2, 3, 2, 3, 3]]] - tissue.particle_rest_q[
             tissue.tet_indices[:, [0, 0, 0, 1, 1, 2]]]
         #: Step (m) above which :class:`QuasiNewton` tests its solve for convergence (:data:`LARGE_STEP_FRACTION`
@@ -462,17 +484,32 @@ class ImplicitTissue:
             return
         if q_prev is None or qd is None:
             raise ValueError("ImplicitTissue.begin with tissue_scheme 'bdf2' needs q_prev and qd")
+        self.substep_scheme, self.factor, self.mass = "bdf2", self._bdf2_factor, self._bdf2_mass
+        self._predicted[...] = q
+        self._gravity[...] = gravity
+        self._q = q
         valid = bool(np.array_equal(q_prev, self._last_q))
         _begin_bdf2(q, q_prev, qd, self.y, self._xhat, self.external, self.free_mask, gravity, self.dt, self.beta,
                     self._decay, t.particle_damping, self._history_x, self._history_v, valid, t.roller_particle,
                     self.roller_axis, self.roller_value)  # fmt: skip
 
+    def _begin_euler(self) -> None:
+        """Turn the BDF2 substep begun by :meth:`begin` into an implicit-Euler one: the predicted positions back,
+        Euler's target and warm start, its masses and factor (the history is kept for the next BDF2 substep)."""
+        self.substep_scheme, self.factor, self.mass = "euler", self.rest_factor, self._euler_mass
+        q = self._q
+        q[...] = self._predicted
+        _begin_substep(q, self.y, self.external, self.free_mask, self._gravity, self.dt * self.dt,
+                       self.tissue.roller_particle, self.roller_axis, self.roller_value)  # fmt: skip
+
     def finish(self, q: np.ndarray, qd: np.ndarray) -> None:
         """End of the substep, after the solver's velocities ``qd = (q - q_prev) / h`` (m/s): BDF2 replaces them on
         the free dofs by its own, ``(q - xhat) / beta`` (:func:`_finish_bdf2`), and remembers ``q`` (m); implicit
         Euler keeps them."""
-        if self.scheme == "bdf2":
+        if self.substep_scheme == "bdf2":
             _finish_bdf2(q, self._xhat, self.free_mask, 1.0 / self.beta, qd, self._last_q)
+        elif self.scheme == "bdf2":
+            self._last_q[...] = q
 
     def iteration_summary(self) -> dict:
         """Quasi-Newton iterations per substep over the substeps begun so far (the current one included):
@@ -494,9 +531,16 @@ class ImplicitTissue:
         """The coupling rows' compliance tuple for this substep (:mod:`~suture_gym.sim.coupling.compliance`):
         the substep compliance ``C = A0^-1 / h^2`` (1/kg) among the free particles of ``touched`` ((N,) bool,
         the vertices the rows act on), gathered from cached columns of ``A0^-1`` (``A0`` is constant, so each
-        particle's columns are solved for once). Resets the impulse sum :meth:`propagate_rows` spreads."""
+        particle's columns are solved for once). Resets the impulse sum :meth:`propagate_rows` spreads.
+
+        A BDF2 substep that rows touch becomes an implicit-Euler one (:meth:`_begin_euler`): with BDF2's target the
+        rows' impulses reach the tissue's momentum over the following substeps, not in the one they act in, and
+        under bang-bang needle forces the rigid rows then pushed against momentum still on its way (6 divergences
+        in 24,000 fuzzed steps of NeedleInsert and WoundClosure, none with implicit Euler)."""
         self._impulse[...] = 0.0
         vertices, same = _free_touched(touched, self._free_particle, self.compliance[2])
+        if self.substep_scheme == "bdf2" and vertices.size:
+            self._begin_euler()
         if same:  # the same vertices as last substep: the same matrix
             return self.compliance
         self._solve_columns(vertices)
@@ -526,7 +570,7 @@ class ImplicitTissue:
             rhs = np.zeros((self.free_index.size, 3))
             free = np.flatnonzero(position >= 0)
             rhs[position[free], free] = 1.0
-            solved = self.factor.solve(rhs)
+            solved = self.rest_factor.solve(rhs)
             solved[:, position < 0] = 0.0
             self._column_store[3 * (start + k) : 3 * (start + k + 1)] = solved.T
         self._column_of[missing] = np.arange(start, start + missing.size)
@@ -675,13 +719,13 @@ class QuasiNewton(ImplicitTissue):
         """The steps of :meth:`solve` with :attr:`tolerance` set: one, then more until the largest entry of ``grad
         Phi`` on the free dofs is at most :attr:`tolerance` (N), at most ``iterations`` in all. (The first is always
         taken: it is exact for linear elasticity, and a soft body's whole elastic force can be below a tolerance
-        that suits a stiff one.) Each step ``p = -A0^-1 grad Phi`` is
-        scaled by the secant root of ``Phi``'s slope along it (slopes ``g0.p`` and ``g1.p`` at ``x`` and ``x + p``,
-        the latter from the gradient the step's check computes anyway; within :data:`LINE_SEARCH_RANGE`) unless the
-        step met the tolerance, kept only if it lowers ``Phi`` further: ``A0`` is the rest stiffness, too stiff along a rotation and off along a large
+        that suits a stiff one.) Each step ``p = -A0^-1 grad Phi`` is scaled by the secant root of ``Phi``'s slope
+        along it (slopes ``g0.p`` and ``g1.p`` at ``x`` and ``x + p``, the latter from the gradient the step's check
+        computes anyway; within :data:`LINE_SEARCH_RANGE`) unless the step met the tolerance, kept only if it
+        lowers ``Phi`` further: ``A0`` is the rest stiffness, too stiff along a rotation and off along a large
         stretch, where the plain steps converge slowly (docs/notes/tissue_integrator.md); the scaling costs a
-        potential pass where it moves. A step that raised ``Phi`` is halved as in
-        :meth:`_iterate`. A solve that stops short of the tolerance without ``converge`` (a sweep before the last)
+        potential pass where it moves. A step that raised ``Phi`` is halved as in :meth:`_iterate`. A solve that
+        stops short of the tolerance without ``converge`` (a sweep before the last)
         sets :attr:`unconverged`. Returns ``Phi`` at the final ``q`` (J)."""
         flat = q.reshape(-1)
         free = self.free_index
