@@ -7,9 +7,10 @@ from dataclasses import replace
 import numpy as np
 import pytest
 import scipy.sparse
+import scipy.sparse.linalg
 
 from suture_gym.sim.mesh import rest_shape, signed_volumes
-from suture_gym.sim.model import Control, TissueMaterial
+from suture_gym.sim.model import Control, State, TissueMaterial, TissueState
 from suture_gym.sim.rest_system import SparseCholesky
 from suture_gym.sim.scenes import PAPER_SOLVER, compression_block, suturing_pad
 from suture_gym.sim.solver import Solver
@@ -407,12 +408,17 @@ def _press(youngs: float, force: float, solver: Solver, seconds: float = 0.4):
     return scene, tip_z0 - float(tip[2])
 
 
-def test_needle_load_reaches_the_implicit_tissue_and_its_base():
-    """1 N tip on a 100 kPa pad at 1 ms, quasi-Newton with two sweeps: no divergence, the tissue comes to rest,
-    the tip dents it by under a cell, and the pinned base carries the tissue's weight plus the push."""
+BDF2_TOLERANCE = {"tissue_scheme": "bdf2", "tissue_tolerance": 1e-6, "tissue_iterations": 20}
+
+
+@pytest.mark.parametrize("options", [{}, {"tissue_scheme": "bdf2"}, BDF2_TOLERANCE])
+def test_needle_load_reaches_the_implicit_tissue_and_its_base(options):
+    """1 N tip on a 100 kPa pad at 1 ms, quasi-Newton with two sweeps (implicit Euler, or BDF2 with or without a
+    tolerance): no divergence, the tissue comes to rest, the tip dents it by under a cell, and the pinned base
+    carries the tissue's weight plus the push."""
     from suture_gym.measure.tissue_stiff import _elastic_gradient
 
-    scene, dent = _press(1.0e5, 1.0, Solver(tissue_integrator="quasi_newton", iterations=2, max_speed=50.0))
+    scene, dent = _press(1.0e5, 1.0, Solver(tissue_integrator="quasi_newton", iterations=2, max_speed=50.0, **options))
     state, tissue = scene.state, scene.model.tissue
     assert not state.diverged
     assert np.abs(state.tissue.particle_qd).max() < 1e-2
@@ -423,6 +429,8 @@ def test_needle_load_reaches_the_implicit_tissue_and_its_base():
     # the rows' impulses reach the tissue whole (the rows solve against its compliance among their vertices)
     assert support == pytest.approx(weight + state.coupling.tip_force, rel=0.01)
     assert state.coupling.tip_force == pytest.approx(1.0, rel=0.02)
+    scheme = options.get("tissue_scheme", "euler")
+    assert state.work.tissue_integrator("quasi_newton", 1e-3, scheme).substep_scheme == "euler"  # rows touch: Euler
 
 
 def test_a_state_can_change_integrator_between_steps_and_its_rows_follow():
@@ -527,3 +535,101 @@ def test_the_stiff_env_benchmark_changes_only_the_stiffness_for_its_soft_physics
     assert soft.action.max_force == pytest.approx(stiff.action.max_force * scale)
     with pytest.raises(ValueError, match="physics must be one of"):
         _stiff_env(env_id, "medium")
+
+
+def test_a_solve_with_a_tolerance_iterates_until_the_gradient_is_below_it():
+    integrator, q, _scene = _loaded_state("quasi_newton", 3.0e4)
+    integrator.tolerance = 1e-9
+    integrator.solve(q, 50)
+    integrator.potential(q)
+    free = integrator.free_index
+    assert np.abs(integrator.grad.reshape(-1)[free]).max() <= 1e-9
+    taken = integrator.substep_iterations
+    assert 1 < taken < 50
+    assert integrator.iteration_summary() == {"substeps": 1, "mean": taken, "max": taken}
+    capped, q_capped, _ = _loaded_state("quasi_newton", 3.0e4)
+    capped.tolerance = 1e-9
+    capped.solve(q_capped, 1, converge=False)  # a first sweep's solve stopped by the cap is left unconverged
+    assert capped.substep_iterations == 1 and capped.unconverged
+    loose, q_loose, _ = _loaded_state("quasi_newton", 3.0e4)
+    loose.tolerance = 1e3  # above every force: the first step is still taken, and only it
+    loose.solve(q_loose, 50)
+    assert loose.substep_iterations == 1
+
+
+def test_solver_options_are_validated_naming_the_field():
+    with pytest.raises(ValueError, match="tissue_tolerance"):
+        Solver(tissue_tolerance=-1e-6)
+    with pytest.raises(ValueError, match="tissue_tolerance"):
+        Solver(tissue_tolerance=True)
+    with pytest.raises(ValueError, match="tissue_scheme"):
+        Solver(tissue_scheme="midpoint")
+    with pytest.raises(ValueError, match="tissue_scheme"):
+        QuasiNewton(suturing_pad(cells=(2, 2, 1), material=TissueMaterial(1.0e4, 0.45)).model.tissue, 1e-3, "rk4")
+
+
+@pytest.mark.parametrize("tolerance", [0.0, 1e-7])
+def test_bdf2_keeps_a_stiff_pad_at_rest(tolerance):  # no coupling rows: every substep is BDF2
+    scene = suturing_pad(size=(0.008, 0.008, 0.008), cells=(4, 4, 4), material=TissueMaterial(1.0e6, 0.45))
+    solver = Solver(iterations=1, max_speed=50.0, tissue_scheme="bdf2", tissue_tolerance=tolerance)
+    for _ in range(100):
+        solver.step(scene.model, scene.state, Control(), 1e-3)
+    assert not scene.state.diverged
+    assert np.abs(scene.state.tissue.particle_qd).max() < 1e-6
+
+
+def _released_beam_energy(scheme: str, steps: int) -> tuple[float, float]:
+    """(energy at release, energy after ``steps`` 1 ms substeps) of an undamped 300 kPa cantilever released from its
+    static deflection scaled to a 0.2 mm tip deflection."""
+    from suture_gym.sim.scenes import cantilever
+
+    material = TissueMaterial(3.0e5, 0.45, damping=0.0)
+    scene = cantilever(0.02, 0.004, 0.004, (10, 2, 2), material, gravity=0.0)
+    tissue = scene.model.tissue
+    free = np.flatnonzero(np.repeat(tissue.particle_inv_mass > 0, 3))
+    shape = np.zeros(3 * tissue.particle_count)  # the static deflection under a tip-down body load (linear FE)
+    load = np.repeat(tissue.particle_mass, 3) * np.tile([0.0, 0.0, -1.0], tissue.particle_count)
+    shape[free] = scipy.sparse.linalg.spsolve(stiffness_matrix(tissue).tocsc()[free][:, free], load[free])
+    shape = shape.reshape(-1, 3)
+    scene.state.tissue.particle_q += shape * (2e-4 / np.abs(shape).max())
+    scene.state.tissue.particle_q_prev[...] = scene.state.tissue.particle_q
+    solver = Solver(iterations=1, max_speed=50.0, tissue_scheme=scheme)
+
+    def energy() -> float:
+        q, v = scene.state.tissue.particle_q, scene.state.tissue.particle_qd
+        grad = np.zeros_like(q)
+        elastic = incremental_potential(
+            q, q, np.zeros(tissue.particle_count), np.ones(q.shape), 0.0, tissue.tet_indices, tissue.tet_dm_inv,
+            tissue.tet_rest_volume, tissue.tet_mu, tissue.tet_lambda, np.arange(tissue.tet_count, dtype=np.int32),
+            np.zeros_like(q), grad,
+        )  # fmt: skip
+        return elastic + 0.5 * float(np.sum(tissue.particle_mass[:, None] * v * v))
+
+    start = energy()
+    for _ in range(steps):
+        solver.step(scene.model, scene.state, Control(), 1e-3)
+    return start, energy()
+
+
+def test_bdf2_loses_far_less_energy_than_implicit_euler_on_a_free_beam():
+    start, euler = _released_beam_energy("euler", 300)
+    same, bdf2 = _released_beam_energy("bdf2", 300)
+    assert same == start
+    assert euler < 1e-3 * start  # implicit Euler's numerical damping (omega h about 0.18)
+    assert 0.6 * start < bdf2 < 1.001 * start  # measured: 0.69
+
+
+def test_bdf2_material_damping_decays_a_free_body_at_its_rate():
+    pad = suturing_pad(size=(0.004, 0.004, 0.004), cells=(1, 1, 1), material=TissueMaterial(1.0e4, 0.45, damping=20.0))
+    tissue = replace(pad.model.tissue, particle_inv_mass=1.0 / pad.model.tissue.particle_mass)  # nothing pinned
+    model = replace(pad.model, tissue=tissue, gravity=np.zeros(3))
+    state = State(tissue=TissueState.at_rest(tissue))
+    state.tissue.particle_qd[:, 0] = 0.1
+    solver, speeds = Solver(iterations=1, max_speed=50.0, tissue_scheme="bdf2"), []
+    for _ in range(2):
+        for _ in range(50):
+            solver.step(model, state, Control(), 1e-3)
+        speeds.append(state.tissue.particle_qd[:, 0].copy())
+    # the first substep starts from a constant-velocity history (its decay is short by c h / 3); after it, BDF2's
+    assert speeds[1] / speeds[0] == pytest.approx(np.exp(-20.0 * 0.05), rel=1e-3)
+    np.testing.assert_allclose(state.tissue.particle_qd[:, 1:], 0.0, atol=1e-12)

@@ -520,14 +520,15 @@ class Work:
                                           t.tet_lambda, t.tet_color_order)  # fmt: skip
         return self._tet_blocks
 
-    def tissue_integrator(self, kind: str, dt: float) -> ImplicitTissue:
-        """The implicit tissue integrator ``kind`` for substep ``dt`` (s) of the model's tissue
+    def tissue_integrator(self, kind: str, dt: float, scheme: str = "euler") -> ImplicitTissue:
+        """The implicit tissue integrator ``kind`` for substep ``dt`` (s) and time ``scheme`` of the model's tissue
         (:class:`~suture_gym.sim.tissue_implicit.ImplicitTissue`): built, with its factorised rest system, on first
-        use and again only when ``kind`` or ``dt`` changes."""
+        use and again only when ``kind``, ``dt`` or ``scheme`` changes."""
         current = self._tissue_integrator
-        if current is None or current.name != kind or current.dt != float(dt):
-            current = implicit_tissue(self.model.tissue, kind, dt)
-            weakref.finalize(current, _drop_solve_buffer, current.factor).atexit = False
+        if current is None or current.name != kind or current.dt != float(dt) or current.scheme != scheme:
+            current = implicit_tissue(self.model.tissue, kind, dt, scheme)
+            for factor in current.factors:
+                weakref.finalize(current, _drop_solve_buffer, factor).atexit = False
             self._tissue_integrator = current
         return current
 

@@ -123,7 +123,7 @@ from suture_gym.sim.tissue import (
     tet_residual,
     xpbd_stability_number,
 )
-from suture_gym.sim.tissue_implicit import IMPLICIT_INTEGRATORS
+from suture_gym.sim.tissue_implicit import IMPLICIT_INTEGRATORS, TISSUE_SCHEMES
 
 #: Phases timed by :meth:`Solver.step` when given a ``timings`` dict (seconds accumulated per phase).
 PHASES = ("predict", "detect", "project", "velocities")
@@ -285,7 +285,17 @@ class Solver:
             :mod:`suture_gym.sim.tissue_implicit`) or ``"xpbd"`` (the stable neo-Hookean XPBD split). With an implicit
             integrator each sweep solves the tissue (``tissue_iterations`` inner iterations) instead of projecting
             the tets, and the coupling rows see the tissue's substep compliance.
-        tissue_iterations: inner iterations of an implicit tissue integrator per sweep (>= 1; unused by XPBD).
+        tissue_iterations: inner iterations of an implicit tissue integrator per sweep (>= 1; unused by XPBD);
+            with ``tissue_tolerance`` the most a solve may take.
+        tissue_tolerance: N (>= 0): if positive, a quasi-Newton solve in a substep no coupling row touches takes
+            one step, then more until the largest entry of the incremental potential's gradient (a force on a
+            particle's axis) is at most this, up to ``tissue_iterations`` steps in all (a substep with rows keeps
+            one step and the large-step test, :meth:`~suture_gym.sim.tissue_implicit.QuasiNewton.solve`); 0 (the
+            default): ``tissue_iterations`` steps with the large-step convergence test there.
+        tissue_scheme: time scheme of an implicit tissue integrator (:data:`~suture_gym.sim.tissue_implicit.
+            TISSUE_SCHEMES`): ``"euler"`` (implicit Euler, the default; its numerical damping grows with
+            ``omega dt``) or ``"bdf2"`` (second order, far less numerical damping; material damping taken
+            implicitly).
     """
 
     iterations: int = 2
@@ -294,8 +304,18 @@ class Solver:
     rod_tolerance: float = 1.0e-6
     tissue_integrator: str = "quasi_newton"
     tissue_iterations: int = 1
+    tissue_tolerance: float = 0.0
+    tissue_scheme: str = "euler"
 
     def __post_init__(self) -> None:
+        if self.tissue_scheme not in TISSUE_SCHEMES:
+            raise ValueError(f"Solver.tissue_scheme must be one of {TISSUE_SCHEMES}, got {self.tissue_scheme!r}")
+        value = self.tissue_tolerance
+        if isinstance(value, bool) or not isinstance(value, (int, float, np.floating)) or not (
+            math.isfinite(value) and value >= 0
+        ):
+            raise ValueError(f"Solver.tissue_tolerance must be a finite number >= 0 (N; 0: off), got {value!r}")
+        object.__setattr__(self, "tissue_tolerance", float(value))
         if self.tissue_integrator not in ("xpbd", *IMPLICIT_INTEGRATORS):
             raise ValueError(
                 f"Solver.tissue_integrator must be one of {('xpbd', *IMPLICIT_INTEGRATORS)}, "
@@ -494,6 +514,12 @@ class Solver:
             state.tissue.particle_q_prev,
         )  # fmt: skip
 
+    def _integrator(self, state: State, dt: float):
+        """The state's implicit tissue integrator of this solver's kind, scheme and tolerance for substep ``dt``."""
+        integrator = state.work.tissue_integrator(self.tissue_integrator, dt, self.tissue_scheme)
+        integrator.tolerance = self.tissue_tolerance if self.tissue_tolerance > 0 else None
+        return integrator
+
     def _implicit(self, model: Model) -> bool:
         """Whether the tissue is stepped by an implicit integrator."""
         return model.tissue is not None and self.tissue_integrator != "xpbd"
@@ -505,8 +531,9 @@ class Solver:
         the suture nodes' embedded inverse masses."""
         work = state.work
         if self._implicit(model):
-            integrator = work.tissue_integrator(self.tissue_integrator, dt)
-            integrator.begin(state.tissue.particle_q, model.gravity)
+            integrator = self._integrator(state, dt)
+            integrator.begin(state.tissue.particle_q, model.gravity, state.tissue.particle_q_prev,
+                             state.tissue.particle_qd)
             if model.coupling is not None:
                 work.compliance = integrator.begin_rows(self._row_vertices(model, state))
         elif model.tissue is not None:
@@ -563,7 +590,7 @@ class Solver:
         :meth:`~suture_gym.sim.tissue_implicit.ImplicitTissue.project_face_contacts`)."""
         tissue, tissue_state = model.tissue, state.tissue
         if self._implicit(model):
-            if state.work.tissue_integrator(self.tissue_integrator, dt).sweeps_done:
+            if self._integrator(state, dt).sweeps_done:
                 return
             self._project_implicit(model, state, dt, first_sweep, last_sweep)
         else:
@@ -585,7 +612,7 @@ class Solver:
                              tissue_state.particle_q)  # fmt: skip
         if tissue is not None and tissue.contact_vertex.size:
             if self._implicit(model):
-                state.work.tissue_integrator(self.tissue_integrator, dt).project_face_contacts(tissue_state.particle_q)
+                self._integrator(state, dt).project_face_contacts(tissue_state.particle_q)
             else:
                 project_face_contacts(tissue.tri_indices, tissue.contact_vertex, tissue.contact_face,
                                       tissue.contact_reach, tissue_state.particle_q,
@@ -595,7 +622,7 @@ class Solver:
         """:meth:`_project` with an implicit tissue integrator (see there): the elastic solve, the coupling rows
         and the suture, then the rows' load spread over the tissue."""
         tissue_q = state.tissue.particle_q
-        integrator = state.work.tissue_integrator(self.tissue_integrator, dt)
+        integrator = self._integrator(state, dt)
         if (
             first_sweep
             or integrator.unconverged
@@ -766,6 +793,8 @@ class Solver:
             diverged |= update_particle_velocities(
                 tissue_state.particle_q, tissue_state.particle_q_prev, dt, self.max_speed, tissue_state.particle_qd
             )
+            if self._implicit(model):
+                self._integrator(state, dt).finish(tissue_state.particle_q, tissue_state.particle_qd)
         if model.suture is not None:
             rod = state.suture
             diverged |= update_particle_velocities(rod.node_pos, rod.node_pos_prev, dt, self.max_speed, rod.node_vel)

@@ -91,6 +91,13 @@ ESTIMATED_STEP_LIMIT = CONVERGED_SPEED / 5.0
 TRUSTED_FIRST_STEP = 2.0
 #: Most iterations a quasi-Newton solve adds to its set ones to pass :data:`CONVERGED_SPEED`.
 MAX_EXTRA_ITERATIONS = 8
+#: Range of the factor a quasi-Newton step solved to a tolerance is scaled by (the secant root of ``Phi``'s slope
+#: along it, :meth:`QuasiNewton._iterate_to_tolerance`), and the least change of it that is tried.
+LINE_SEARCH_RANGE = (0.25, 4.0)
+LINE_SEARCH_MIN_CHANGE = 0.1
+#: Time schemes of the implicit integrators (``Solver.tissue_scheme``): ``"euler"`` (implicit Euler) and
+#: ``"bdf2"`` (the second-order backward differentiation formula, its first substep on an extrapolated history).
+TISSUE_SCHEMES = ("euler", "bdf2")
 
 
 @njit(cache=True)
@@ -105,6 +112,52 @@ def _begin_substep(q, y, external, free, gravity, h2, roller_particle, roller_ax
             y[p, i] = q[p, i]
             external[p, i] = 0.0
             q[p, i] -= gravity[i] * h2 * free[p, i]
+
+
+@njit(cache=True)
+def _begin_bdf2(q, q_prev, qd, y, xhat, external, free, gravity, h, beta, decay, damping, history_x, history_v,
+                valid, roller_particle, roller_axis, roller_value) -> None:
+    """BDF2's substep start: rollers on their planes, then on the free dofs (``free`` the float mask) from ``x_n =
+    q_prev`` and ``v_n``, recovered from the predicted velocity ``qd = decay v_n + g h`` (``decay`` (N,) the
+    prediction's ``exp(-c h)``), and the history ``x_{n-1}, v_{n-1}`` (``history_x``, ``history_v``; if not
+    ``valid``, the constant-velocity ``x_n - h v_n, v_n``): ``xhat = (4 x_n - x_{n-1}) / 3``, ``vhat = (4 v_n -
+    v_{n-1}) / 3``, ``y = xhat + beta (vhat + beta g) / (1 + beta c)`` (``beta = 2 h / 3``, ``c`` = ``damping``
+    (N,) 1/s, taken implicitly), the warm start ``q = xhat + beta vhat / (1 + beta c)``; ``history_*`` become
+    ``x_n, v_n``, ``external`` 0. Held dofs: ``y = q``."""
+    for r in range(roller_particle.shape[0]):
+        q[roller_particle[r], roller_axis[r]] = roller_value[r]
+    for p in range(q.shape[0]):
+        scale = beta / (1.0 + beta * damping[p])
+        for i in range(3):
+            external[p, i] = 0.0
+            if free[p, i] == 0.0:
+                y[p, i] = q[p, i]
+                xhat[p, i] = q_prev[p, i]
+                continue
+            x_n = q_prev[p, i]
+            v_n = (qd[p, i] - gravity[i] * h) / decay[p]
+            if valid:
+                x_old, v_old = history_x[p, i], history_v[p, i]
+            else:
+                x_old, v_old = x_n - h * v_n, v_n
+            hat = (4.0 * x_n - x_old) / 3.0
+            vhat = (4.0 * v_n - v_old) / 3.0
+            xhat[p, i] = hat
+            q[p, i] = hat + scale * vhat
+            y[p, i] = q[p, i] + scale * beta * gravity[i]
+            history_x[p, i] = x_n
+            history_v[p, i] = v_n
+
+
+@njit(cache=True)
+def _finish_bdf2(q, xhat, free, inv_beta, qd, last) -> None:
+    """BDF2's velocity ``v_{n+1} = (x_{n+1} - xhat) / beta`` (``inv_beta`` 1/s) on the free dofs of ``qd`` (N, 3)
+    m/s; ``last <- q`` (the positions the next substep's history must start from)."""
+    for p in range(q.shape[0]):
+        for i in range(3):
+            last[p, i] = q[p, i]
+            if free[p, i] != 0.0:
+                qd[p, i] = (q[p, i] - xhat[p, i]) * inv_beta
 
 
 @njit(cache=True)
@@ -299,11 +352,43 @@ class ImplicitTissue:
         dt: substep, s.
     """
 
-    def __init__(self, tissue, dt: float):
+    def __init__(self, tissue, dt: float, scheme: str = "euler"):
         check_material_range(tissue)
+        if scheme not in TISSUE_SCHEMES:
+            raise ValueError(f"Solver.tissue_scheme must be one of {TISSUE_SCHEMES}, got {scheme!r}")
         self.tissue = tissue
         self.dt = float(dt)
+        self.scheme = scheme
         self.inv_h2 = 1.0 / (self.dt * self.dt)
+        #: ``(N,)`` kg: the masses of the inertia term ``1 / (2 h^2) (x - y)^T M (x - y)``: the particles' own with
+        #: implicit Euler; with BDF2 ``m (1 + beta c) (h / beta)^2`` (``beta = 2 h / 3``, ``c`` the material
+        #: damping, 1/s), which makes the term BDF2's ``(1 + beta c) / (2 beta^2) (x - y)^T M (x - y)`` while the
+        #: coupling rows' impulses keep turning into forces over ``h^2`` (their momentum is the needle's). Implicit
+        #: Euler's in a substep of a BDF2 integrator that coupling rows touch (:meth:`begin_rows`).
+        self.mass = np.array(tissue.particle_mass, dtype=np.float64)
+        self._euler_mass = self.mass
+        self.beta = self.dt
+        if scheme == "bdf2":
+            self.beta = 2.0 * self.dt / 3.0
+            self._bdf2_mass = self.mass * (1.0 + self.beta * tissue.particle_damping) * (self.dt / self.beta) ** 2
+        #: The scheme of the current substep: :attr:`scheme`, except ``"euler"`` in a substep of a BDF2 integrator
+        #: that coupling rows touch.
+        self.substep_scheme = scheme
+        self._predicted = np.zeros((tissue.particle_count, 3))
+        self._gravity = np.zeros(3)
+        self._q = self._predicted
+        self._decay = np.exp(-np.asarray(tissue.particle_damping, dtype=np.float64) * self.dt)
+        self._xhat = np.zeros((tissue.particle_count, 3))
+        self._history_x = np.zeros((tissue.particle_count, 3))
+        self._history_v = np.zeros((tissue.particle_count, 3))
+        #: The positions the last substep ended on (BDF2: its history is valid for a substep that starts there).
+        self._last_q = np.full((tissue.particle_count, 3), np.nan)
+        #: Largest gradient entry of ``Phi`` (N) at which a solve stops (``Solver.tissue_tolerance``; None: off).
+        self.tolerance: float | None = None
+        #: Quasi-Newton iterations (steps solved) in the current substep, and over all substeps: ``[substeps begun,
+        #: iterations, most in one finished substep]``.
+        self.substep_iterations = 0
+        self.iteration_stats = [0, 0, 0]
         self.free = _free_dofs(tissue)
         #: Each roller's constrained axis and the coordinate that puts its particle on its plane (m).
         normal = tissue.roller_normal
@@ -311,14 +396,28 @@ class ImplicitTissue:
         self.roller_value = tissue.roller_offset / normal[np.arange(self.roller_axis.size), self.roller_axis]
         self.free_index = np.flatnonzero(self.free.ravel())
         pattern = rest_pattern(tissue, self.free_index)
-        data = np.zeros(pattern.indices.size)
-        assemble_rest_system(
-            tissue.tet_indices, tissue.tet_dm_inv, tissue.tet_rest_volume, tissue.tet_mu,
-            tissue.tet_lambda, pattern.entry, pattern.diagonal,
-            np.repeat(tissue.particle_mass, 3)[self.free_index] * self.inv_h2, data,
-        )  # fmt: skip
-        n = self.free_index.size
-        self.factor = SparseCholesky(sp.csc_matrix((data, pattern.indices, pattern.indptr), shape=(n, n)))
+
+        def factorise(mass: np.ndarray) -> SparseCholesky:
+            data = np.zeros(pattern.indices.size)
+            assemble_rest_system(
+                tissue.tet_indices, tissue.tet_dm_inv, tissue.tet_rest_volume, tissue.tet_mu,
+                tissue.tet_lambda, pattern.entry, pattern.diagonal,
+                np.repeat(mass, 3)[self.free_index] * self.inv_h2, data,
+            )  # fmt: skip
+            n = self.free_index.size
+            return SparseCholesky(sp.csc_matrix((data, pattern.indices, pattern.indptr), shape=(n, n)))
+
+        #: The factorised implicit-Euler rest system ``A0 = M / h^2 + K0``: the solves of an Euler substep and the
+        #: coupling rows' compliance (cached columns of its inverse), with either scheme.
+        self.rest_factor = factorise(self._euler_mass)
+        #: The factor the current substep solves with: :attr:`rest_factor`, or BDF2's ``M' / h^2 + K0`` (``M'`` the
+        #: BDF2 masses above) in a BDF2 substep.
+        self.factor = self.rest_factor
+        #: Every factor this integrator holds.
+        self.factors = (self.rest_factor,)
+        if scheme == "bdf2":
+            self._bdf2_factor = factorise(self._bdf2_mass)
+            self.factors = (self.rest_factor, self._bdf2_factor)
         edges = tissue.particle_rest_q[tissue.tet_indices[:, [1, 2, 3, 2, 3, 3]]] - tissue.particle_rest_q[
             tissue.tet_indices[:, [0, 0, 0, 1, 1, 2]]]
         #: Step (m) above which :class:`QuasiNewton` tests its solve for convergence (:data:`LARGE_STEP_FRACTION`
@@ -364,22 +463,67 @@ class ImplicitTissue:
         self.compliance = (tissue.particle_inv_mass, self._slot, np.zeros(0, np.int32), np.zeros((0, 0)),
                            self._impulse)  # fmt: skip
 
-    def begin(self, q: np.ndarray, gravity: np.ndarray) -> None:
-        """Store the inertial target ``y`` (the predicted ``q``) and move ``q`` to the warm start
-        ``y - h^2 g = x_prev + h v`` on the free dofs. Axis-aligned roller axes are set on their planes."""
+    def begin(self, q: np.ndarray, gravity: np.ndarray, q_prev: np.ndarray | None = None,
+              qd: np.ndarray | None = None) -> None:
+        """Store the inertial target ``y`` and move ``q`` (the predicted positions) to the warm start on the free
+        dofs; axis-aligned roller axes are set on their planes. Implicit Euler: ``y = q`` (``x_prev + h v + h^2
+        g``), warm start ``y - h^2 g``. BDF2 (:func:`_begin_bdf2`) also needs the substep's start ``q_prev`` (m)
+        and the predicted velocity ``qd`` (m/s); its history is the last substep's if ``q_prev`` is where that one
+        ended, else extrapolated at constant velocity."""
         self.rows_move = 0.0
         self.unconverged = False
         self.sweeps_done = False
-        _begin_substep(q, self.y, self.external, self.free_mask, gravity, self.dt * self.dt,
+        stats = self.iteration_stats
+        stats[0] += 1
+        stats[2] = max(stats[2], self.substep_iterations)
+        self.substep_iterations = 0
+        t = self.tissue
+        if self.scheme == "euler":
+            _begin_substep(q, self.y, self.external, self.free_mask, gravity, self.dt * self.dt,
+                           t.roller_particle, self.roller_axis, self.roller_value)  # fmt: skip
+            return
+        if q_prev is None or qd is None:
+            raise ValueError("ImplicitTissue.begin with tissue_scheme 'bdf2' needs q_prev and qd")
+        self.substep_scheme, self.factor, self.mass = "bdf2", self._bdf2_factor, self._bdf2_mass
+        self._predicted[...] = q
+        self._gravity[...] = gravity
+        self._q = q
+        valid = bool(np.array_equal(q_prev, self._last_q))
+        _begin_bdf2(q, q_prev, qd, self.y, self._xhat, self.external, self.free_mask, gravity, self.dt, self.beta,
+                    self._decay, t.particle_damping, self._history_x, self._history_v, valid, t.roller_particle,
+                    self.roller_axis, self.roller_value)  # fmt: skip
+
+    def _begin_euler(self) -> None:
+        """Turn the BDF2 substep begun by :meth:`begin` into an implicit-Euler one: the predicted positions back,
+        Euler's target and warm start, its masses and factor (the history is kept for the next BDF2 substep)."""
+        self.substep_scheme, self.factor, self.mass = "euler", self.rest_factor, self._euler_mass
+        q = self._q
+        q[...] = self._predicted
+        _begin_substep(q, self.y, self.external, self.free_mask, self._gravity, self.dt * self.dt,
                        self.tissue.roller_particle, self.roller_axis, self.roller_value)  # fmt: skip
+
+    def finish(self, q: np.ndarray, qd: np.ndarray) -> None:
+        """End of the substep, after the solver's velocities ``qd = (q - q_prev) / h`` (m/s): BDF2 replaces them on
+        the free dofs by its own, ``(q - xhat) / beta`` (:func:`_finish_bdf2`), and remembers ``q`` (m); implicit
+        Euler keeps them."""
+        if self.substep_scheme == "bdf2":
+            _finish_bdf2(q, self._xhat, self.free_mask, 1.0 / self.beta, qd, self._last_q)
+        elif self.scheme == "bdf2":
+            self._last_q[...] = q
+
+    def iteration_summary(self) -> dict:
+        """Quasi-Newton iterations per substep over the substeps begun so far (the current one included):
+        ``{"substeps", "mean", "max"}``."""
+        substeps, total, most = self.iteration_stats
+        return {"substeps": substeps, "mean": total / substeps if substeps else 0.0,
+                "max": max(most, self.substep_iterations)}  # fmt: skip
 
     def potential(self, q: np.ndarray, with_gradient: bool = True) -> float:
         """``Phi(q) - f_ext . q`` (J) of the current substep, ``f_ext`` the coupling rows' forces of the
         earlier sweeps of this substep (:attr:`external`, N); writes its gradient into ``self.grad`` (N) unless
         ``with_gradient`` is False."""
-        t = self.tissue
         return potential_kernel(
-            q, self.y, t.particle_mass, self.free_mask, self.inv_h2, self._tet_columns, self._potential_scratch,
+            q, self.y, self.mass, self.free_mask, self.inv_h2, self._tet_columns, self._potential_scratch,
             self.external, self.grad, with_gradient,
         )  # fmt: skip
 
@@ -387,9 +531,16 @@ class ImplicitTissue:
         """The coupling rows' compliance tuple for this substep (:mod:`~suture_gym.sim.coupling.compliance`):
         the substep compliance ``C = A0^-1 / h^2`` (1/kg) among the free particles of ``touched`` ((N,) bool,
         the vertices the rows act on), gathered from cached columns of ``A0^-1`` (``A0`` is constant, so each
-        particle's columns are solved for once). Resets the impulse sum :meth:`propagate_rows` spreads."""
+        particle's columns are solved for once). Resets the impulse sum :meth:`propagate_rows` spreads.
+
+        A BDF2 substep that rows touch becomes an implicit-Euler one (:meth:`_begin_euler`): with BDF2's target the
+        rows' impulses reach the tissue's momentum over the following substeps, not in the one they act in, and
+        under bang-bang needle forces the rigid rows then pushed against momentum still on its way (6 divergences
+        in 24,000 fuzzed steps of NeedleInsert and WoundClosure, none with implicit Euler)."""
         self._impulse[...] = 0.0
         vertices, same = _free_touched(touched, self._free_particle, self.compliance[2])
+        if self.substep_scheme == "bdf2" and vertices.size:
+            self._begin_euler()
         if same:  # the same vertices as last substep: the same matrix
             return self.compliance
         self._solve_columns(vertices)
@@ -419,7 +570,7 @@ class ImplicitTissue:
             rhs = np.zeros((self.free_index.size, 3))
             free = np.flatnonzero(position >= 0)
             rhs[position[free], free] = 1.0
-            solved = self.factor.solve(rhs)
+            solved = self.rest_factor.solve(rhs)
             solved[:, position < 0] = 0.0
             self._column_store[3 * (start + k) : 3 * (start + k + 1)] = solved.T
         self._column_of[missing] = np.arange(start, start + missing.size)
@@ -506,8 +657,19 @@ class QuasiNewton(ImplicitTissue):
         diverge.) The check's gradient is the next step's, so ``n`` small steps cost ``n`` solves and ``n + 1``
         evaluations of ``Phi`` (the last one without the gradient); a large last step costs a gradient and a
         solve more, the convergence test's, whose step is taken only if it fails.
+
+        With :attr:`tolerance` set, a substep no coupling row touches (:meth:`begin_rows` found no vertex) solves to
+        it instead (:meth:`_iterate_to_tolerance`); one that rows touch keeps the steps above with ``iterations`` 1.
+        The rows' impulses move the tissue by the rest system's linear response, and the forces they read are
+        ``A0`` times the move the solve made away from the warm start: exact for one step of ``x <- x - A0^-1 grad
+        Phi`` (the rows then balance the true elastic force), but not for a converged solve under large local
+        strain (a 1 N tip on a 100 kPa pad, dent a cell: the base carried 2.8% more than the tip's force and the
+        tissue's weight, and the solves took 15 iterations a substep).
         """
-        phi = self._iterate(q, iterations, converge)
+        if self.tolerance is None or self.compliance[2].size:
+            phi = self._iterate(q, iterations if self.tolerance is None else 1, converge)
+        else:
+            phi = self._iterate_to_tolerance(q, iterations, converge)
         self._solved_q[...] = q
         self._solved_external[...] = self.external
         self._solved_phi = phi
@@ -523,6 +685,8 @@ class QuasiNewton(ImplicitTissue):
             step = self.factor.solve(_gather(self.grad.reshape(-1), free, self._free_grad))
             if iteration >= iterations and not np.max(np.abs(step), initial=0.0) > converged:
                 return phi
+            self.substep_iterations += 1
+            self.iteration_stats[1] += 1
             size = _add_at(flat, free, step, -1.0)  # the step is -A0^-1 grad
             large = iteration == iterations - 1 and size > self.large_step
             test_next = iteration != iterations - 1 or (large and converge)
@@ -549,6 +713,63 @@ class QuasiNewton(ImplicitTissue):
             phi = trial
             if not test_next:
                 return phi
+        return phi
+
+    def _iterate_to_tolerance(self, q: np.ndarray, iterations: int, converge: bool) -> float:
+        """The steps of :meth:`solve` with :attr:`tolerance` set: one, then more until the largest entry of ``grad
+        Phi`` on the free dofs is at most :attr:`tolerance` (N), at most ``iterations`` in all. (The first is always
+        taken: it is exact for linear elasticity, and a soft body's whole elastic force can be below a tolerance
+        that suits a stiff one.) Each step ``p = -A0^-1 grad Phi`` is scaled by the secant root of ``Phi``'s slope
+        along it (slopes ``g0.p`` and ``g1.p`` at ``x`` and ``x + p``, the latter from the gradient the step's check
+        computes anyway; within :data:`LINE_SEARCH_RANGE`) unless the step met the tolerance, kept only if it
+        lowers ``Phi`` further: ``A0`` is the rest stiffness, too stiff along a rotation and off along a large
+        stretch, where the plain steps converge slowly (docs/notes/tissue_integrator.md); the scaling costs a
+        potential pass where it moves. A step that raised ``Phi`` is halved as in :meth:`_iterate`. A solve that
+        stops short of the tolerance without ``converge`` (a sweep before the last)
+        sets :attr:`unconverged`. Returns ``Phi`` at the final ``q`` (J)."""
+        flat = q.reshape(-1)
+        free = self.free_index
+        phi = self.potential(q)
+        self.unconverged = False
+        low, high = LINE_SEARCH_RANGE
+        for iteration in range(iterations):
+            gradient = _gather(self.grad.reshape(-1), free, self._free_grad)
+            if iteration > 0 and not np.max(np.abs(gradient), initial=0.0) > self.tolerance:
+                return phi
+            step = self.factor.solve(gradient)
+            self.substep_iterations += 1
+            self.iteration_stats[1] += 1
+            slope = -float(gradient @ step)  # along p = -step, at x
+            _add_at(flat, free, step, -1.0)
+            trial = self.potential(q)
+            bound = phi + ROUNDOFF * abs(phi)
+            end_gradient = _gather(self.grad.reshape(-1), free, self._free_grad)
+            if trial <= bound and np.max(np.abs(end_gradient), initial=0.0) > self.tolerance:
+                end_slope = -float(end_gradient @ step)
+                scale = slope / (slope - end_slope) if slope != end_slope else 1.0
+                scale = min(max(scale, low), high)
+                if abs(scale - 1.0) > LINE_SEARCH_MIN_CHANGE:
+                    extra = step * (scale - 1.0)
+                    _add_at(flat, free, extra, -1.0)
+                    scaled = self.potential(q)
+                    if scaled <= trial:
+                        trial = scaled
+                    else:
+                        _add_at(flat, free, extra, 1.0)
+                        trial = self.potential(q)
+            halvings = 0
+            while not trial <= bound and halvings < MAX_HALVINGS:
+                step *= 0.5
+                _add_at(flat, free, step, 1.0)
+                trial = self.potential(q)
+                halvings += 1
+            if not trial <= bound:
+                _add_at(flat, free, step, 1.0)
+                phi = self.potential(q)
+                break
+            phi = trial
+        gradient = _gather(self.grad.reshape(-1), free, self._free_grad)
+        self.unconverged = not converge and np.max(np.abs(gradient), initial=0.0) > self.tolerance
         return phi
 
     def rows_linear(self, q: np.ndarray) -> bool:
@@ -581,8 +802,8 @@ class VertexBlockDescent(ImplicitTissue):
     name = "vbd"
     chebyshev_rho = 0.0
 
-    def __init__(self, tissue, dt: float):
-        super().__init__(tissue, dt)
+    def __init__(self, tissue, dt: float, scheme: str = "euler"):
+        super().__init__(tissue, dt, scheme)
         tissue = self.tissue
         active = np.flatnonzero(self.free.any(axis=1)).astype(np.int32)
         self.vertex_order = active
@@ -606,7 +827,7 @@ class VertexBlockDescent(ImplicitTissue):
         omega = 1.0
         for k in range(iterations):
             vbd_sweep(
-                q, self.y, t.particle_mass, self.free, self.inv_h2, t.tet_indices, t.tet_dm_inv, t.tet_rest_volume,
+                q, self.y, self.mass, self.free, self.inv_h2, t.tet_indices, t.tet_dm_inv, t.tet_rest_volume,
                 t.tet_mu, t.tet_lambda, self.vertex_order, self.adjacency_offsets, self.adjacency_tet,
                 self.adjacency_corner,
             )  # fmt: skip
@@ -623,10 +844,11 @@ class VertexBlockDescent(ImplicitTissue):
 _KINDS = {"quasi_newton": QuasiNewton, "vbd": VertexBlockDescent}
 
 
-def implicit_tissue(tissue, kind: str, dt: float) -> ImplicitTissue:
-    """A new :class:`ImplicitTissue` of ``kind`` (:data:`IMPLICIT_INTEGRATORS`) for ``tissue`` and ``dt`` (s):
+def implicit_tissue(tissue, kind: str, dt: float, scheme: str = "euler") -> ImplicitTissue:
+    """A new :class:`ImplicitTissue` of ``kind`` (:data:`IMPLICIT_INTEGRATORS`) for ``tissue``, ``dt`` (s) and
+    time ``scheme`` (:data:`TISSUE_SCHEMES`):
     the rest system factorised once (the solver keeps it in ``State.work``, see
     :meth:`~suture_gym.sim.model.Work.tissue_integrator`)."""
     if kind not in _KINDS:
         raise ValueError(f"tissue_integrator must be one of {('xpbd', *IMPLICIT_INTEGRATORS)}, got {kind!r}")
-    return _KINDS[kind](tissue, dt)
+    return _KINDS[kind](tissue, dt, scheme)
