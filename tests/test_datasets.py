@@ -90,3 +90,37 @@ def test_training_clones_a_dataset_by_id(root, tmp_path, monkeypatch):
 def test_a_missing_dataset_is_named_with_the_folder_and_what_it_holds(root):
     with pytest.raises(FileNotFoundError, match=rf"'suture_gym/Nope-v1/expert-v0' in '{root}'.*{DATASET}"):
         load_minari_demos("suture_gym/Nope-v1/expert-v0", root=root)
+
+
+def test_noisy_feedback_demonstrations_record_the_experts_own_actions(tmp_path):
+    """With action noise the env executes the expert's choice plus noise, clipped to the box; the recording keeps
+    both, the Minari dataset as the info ``expert_action``, and cloning fits the expert's choice."""
+    from suture_gym.baselines.datasets import EXPERT_ACTION_KEY
+
+    noisy = {"expert": "feedback", "action_noise": 0.3}
+    record(ENV, 2, tmp_path / "noisy.npz", seed=3, env_kwargs=SHORT, progress=False, **noisy)
+    npz = load_demos(tmp_path / "noisy.npz")
+    chosen, taken = npz["expert_actions"], npz["actions"]
+    assert chosen.shape == taken.shape == (50, 6)
+    assert np.all(np.abs(taken) <= 1.0) and np.abs(taken - chosen).mean() > 0.1
+    rng = np.random.default_rng(3)  # episode 0's noise: env seed 3
+    expected = np.clip(chosen[0] + 0.3 * rng.standard_normal(6), -1.0, 1.0).astype(np.float32)
+    assert np.array_equal(taken[0], expected)
+
+    record_minari(ENV, 2, "suture_gym/NeedleInsert-v3/noisy-v0", root=tmp_path / "minari", seed=3,
+                  env_kwargs=SHORT, progress=False, author="test", **noisy)
+    demos = load_minari_demos("suture_gym/NeedleInsert-v3/noisy-v0", root=tmp_path / "minari")
+    assert np.array_equal(demos["expert_actions"], chosen) and np.array_equal(demos["actions"], taken)
+
+    clean = tmp_path / "clean.npz"
+    record(ENV, 1, clean, seed=3, env_kwargs=SHORT, progress=False, expert="feedback")
+    assert "expert_actions" not in load_demos(clean) and EXPERT_ACTION_KEY == "expert_action"
+
+
+@pytest.mark.parametrize(("change", "message"), [
+    ({"expert": "oracle"}, "expert must be one of"),
+    ({"action_noise": -0.1}, "action_noise must be"),
+])
+def test_recording_names_a_bad_expert_or_noise(change, tmp_path, message):
+    with pytest.raises(ValueError, match=message):
+        record(ENV, 1, tmp_path / "x.npz", env_kwargs=SHORT, progress=False, **change)

@@ -74,3 +74,19 @@ def test_behaviour_cloning_needs_an_actor_critic_policy():
     model = SAC("MlpPolicy", make_vec_env("Pendulum-v1", n_envs=1, seed=0), device="cpu", learning_starts=1)
     with pytest.raises(ValueError, match="actor-critic"):
         behaviour_clone(model, _demos(np.random.default_rng(0)))
+
+
+def test_cloning_fits_the_experts_own_actions_where_they_are_recorded():
+    """Demonstrations recorded with action noise carry the expert's choices as ``expert_actions``: the clone
+    follows them, not the noisy actions the env executed."""
+    from stable_baselines3 import PPO
+    from stable_baselines3.common.env_util import make_vec_env
+
+    env = make_vec_env("Pendulum-v1", n_envs=1, seed=0)
+    model = PPO("MlpPolicy", env, gamma=0.9, seed=0, device="cpu", policy_kwargs={"net_arch": [32, 32]})
+    demos = _demos(np.random.default_rng(0))
+    demos["expert_actions"] = demos["actions"]
+    demos["actions"] = np.random.default_rng(2).uniform(-2.0, 2.0, demos["actions"].shape).astype(np.float32)
+    behaviour_clone(model, demos, epochs=60, batch_size=64, learning_rate=3e-3, seed=0)
+    test = _demos(np.random.default_rng(1), episodes=100)
+    assert _mse(model, env, test) < 0.01

@@ -29,6 +29,9 @@ import numpy as np
 
 #: Per-step ``info`` entries recorded in a SutureGym dataset: name -> (value when absent, dtype). ``tip_force``
 #: is the needle tip's force (N), ``cost`` the tissue-force cost (>= 0), ``is_success`` the task's success flag.
+#: The info key under which a dataset stores the demonstrator's chosen action of each step, ``(T + 1, A)``
+#: float32 (the reset's row zero), where the action taken differs from it (noise added to it).
+EXPERT_ACTION_KEY = "expert_action"
 INFO_KEYS: dict[str, tuple[object, type]] = {
     "tip_force": (0.0, np.float64),
     "cost": (0.0, np.float64),
@@ -86,7 +89,9 @@ def load_dataset(dataset_id: str, root: str | Path | None = None):
 @dataclass
 class RecordedEpisode:
     """One recorded episode of ``T`` steps: ``reset_obs``/``reset_info`` from ``env.reset(seed=seed)``, then per
-    step the action taken, the observation, reward, flags and info ``env.step`` returned."""
+    step the action taken, the observation, reward, flags and info ``env.step`` returned; ``expert_actions``,
+    when recorded, the action the demonstrator chose at each step (it differs from the one taken when noise was
+    added to it; :func:`~suture_gym.baselines.expert.expert_episodes`)."""
 
     seed: int
     reset_obs: object
@@ -97,6 +102,7 @@ class RecordedEpisode:
     terminated: list[bool] = field(default_factory=list)
     truncated: list[bool] = field(default_factory=list)
     infos: list[dict] = field(default_factory=list)
+    expert_actions: list[np.ndarray] = field(default_factory=list)
 
 
 def write_minari(dataset_id: str, episodes: Sequence[RecordedEpisode], env, root: str | Path | None = None,
@@ -105,11 +111,12 @@ def write_minari(dataset_id: str, episodes: Sequence[RecordedEpisode], env, root
     """Write ``episodes`` as the Minari dataset ``dataset_id`` under :func:`datasets_root` ``(root)``.
 
     Each episode holds Minari's ``observations`` (``T + 1``: the reset's, then each step's), ``actions (T, A)
-    float32``, ``rewards``, ``terminations``, ``truncations``, the infos of :data:`INFO_KEYS` (``T + 1``) and its
-    env seed. ``env`` (made by ``gym.make``) gives the recorded env spec, so ``dataset.recover_environment()``
-    rebuilds it after ``import suture_gym``; its ``env_kwargs`` must then be JSON data (a config path, not an
-    ``EnvConfig``). ``algorithm_name``, ``description``, ``author``, ``author_email`` and ``code_permalink`` go to
-    the dataset's metadata. Needs ``pip install 'suture_gym[data]'``.
+    float32``, ``rewards``, ``terminations``, ``truncations``, the infos of :data:`INFO_KEYS` (``T + 1``), the
+    demonstrator's own actions as the info :data:`EXPERT_ACTION_KEY` (``T + 1``, the reset's row zero) when the
+    episodes record them, and its env seed. ``env`` (made by ``gym.make``) gives the recorded env spec, so
+    ``dataset.recover_environment()`` rebuilds it after ``import suture_gym``; its ``env_kwargs`` must then be
+    JSON data (a config path, not an ``EnvConfig``). ``algorithm_name``, ``description``, ``author``,
+    ``author_email`` and ``code_permalink`` go to the dataset's metadata. Needs ``pip install 'suture_gym[data]'``.
 
     Raises:
         ValueError: no episode, an episode without a step, or a dataset ``dataset_id`` exists there already
@@ -128,12 +135,15 @@ def write_minari(dataset_id: str, episodes: Sequence[RecordedEpisode], env, root
         if not episode.actions:
             raise ValueError(f"episode {k} (env seed {episode.seed}) has no step")
         infos = [episode.reset_info, *episode.infos]
+        columns = {key: np.asarray([i.get(key, default) for i in infos], dtype=dtype)
+                   for key, (default, dtype) in INFO_KEYS.items()}
+        if episode.expert_actions:
+            chosen = np.asarray(episode.expert_actions, dtype=np.float32)
+            columns[EXPERT_ACTION_KEY] = np.concatenate([np.zeros_like(chosen[:1]), chosen])
         buffers.append(EpisodeBuffer(
             id=k, seed=episode.seed, observations=_stack([episode.reset_obs, *episode.observations]),
             actions=np.asarray(episode.actions, dtype=np.float32), rewards=episode.rewards,
-            terminations=episode.terminated, truncations=episode.truncated,
-            infos={key: np.asarray([i.get(key, default) for i in infos], dtype=dtype)
-                   for key, (default, dtype) in INFO_KEYS.items()}))
+            terminations=episode.terminated, truncations=episode.truncated, infos=columns))
     with minari_root(root) as folder:
         minari.create_dataset_from_buffers(
             dataset_id, buffers, env=env, eval_env=env, algorithm_name=algorithm_name, author=author,

@@ -170,14 +170,32 @@ class FeedbackExpert(ExpertPolicy):
         return self.env.action_for_wrench(np.concatenate([force, torque]))
 
 
-def expert_episodes(env: gym.Env, episodes: int, seed: int = 0,
-                    progress: bool = False) -> Iterator[RecordedEpisode]:
-    """Run :class:`ExpertPolicy` on ``env`` for ``episodes`` episodes (env seeds ``seed, seed + 1, ...``), each
-    until it terminates or is truncated; yields each as a
-    :class:`~suture_gym.baselines.datasets.RecordedEpisode` once it ends."""
+#: The experts :func:`expert_episodes` runs, by name.
+EXPERTS = {"clock": ExpertPolicy, "feedback": FeedbackExpert}
+
+
+def expert_episodes(env: gym.Env, episodes: int, seed: int = 0, progress: bool = False, expert: str = "clock",
+                    action_noise: float = 0.0) -> Iterator[RecordedEpisode]:
+    """Run a scripted expert on ``env`` for ``episodes`` episodes (env seeds ``seed, seed + 1, ...``), each until
+    it terminates or is truncated; yields each as a :class:`~suture_gym.baselines.datasets.RecordedEpisode` once
+    it ends.
+
+    Args:
+        expert: ``"clock"`` (:class:`ExpertPolicy`) or ``"feedback"`` (:class:`FeedbackExpert`, whose action is a
+            function of the state, so a policy can be fitted to it).
+        action_noise: standard deviation (action units, the box being ``[-1, 1]``) of Gaussian noise added to
+            every action the expert chooses before the env executes it (clipped to the box), drawn from
+            ``np.random.default_rng(env seed)``; the episode then records the executed action in ``actions``
+            and the expert's own in ``expert_actions``. Demonstrations recorded this way show the expert correcting
+            the small errors a learner makes (Laskey et al. 2017, "DART"); 0 executes the expert's action.
+    """
     if isinstance(episodes, bool) or not isinstance(episodes, int) or episodes <= 0:
         raise ValueError(f"episodes must be a positive integer, got {episodes!r}")
-    expert = ExpertPolicy(env)
+    if expert not in EXPERTS:
+        raise ValueError(f"expert must be one of {sorted(EXPERTS)}, got {expert!r}")
+    if not (math.isfinite(action_noise) and action_noise >= 0.0):
+        raise ValueError(f"action_noise must be a finite standard deviation >= 0, got {action_noise!r}")
+    policy = EXPERTS[expert](env.unwrapped)
     iterator = range(episodes)
     if progress:
         from tqdm import tqdm
@@ -185,13 +203,20 @@ def expert_episodes(env: gym.Env, episodes: int, seed: int = 0,
         iterator = tqdm(iterator, desc=f"expert {env.spec.id if env.spec else ''}", unit="episode", file=sys.stderr)
     for k in iterator:
         obs, info = env.reset(seed=seed + k)
-        expert.reset()
+        policy.reset()
+        noise = np.random.default_rng(seed + k)
         episode = RecordedEpisode(seed + k, obs, info)
         done = False
         while not done:
-            action = expert(obs)
+            chosen = np.asarray(policy(obs), dtype=np.float32)
+            action = chosen
+            if action_noise > 0.0:
+                action = np.clip(chosen + action_noise * noise.standard_normal(chosen.shape), -1.0, 1.0)
+                action = action.astype(np.float32)
             obs, reward, terminated, truncated, info = env.step(action)
             episode.actions.append(action)
+            if action_noise > 0.0:
+                episode.expert_actions.append(chosen)
             episode.observations.append(obs)
             episode.rewards.append(float(reward))
             episode.terminated.append(bool(terminated))
@@ -202,16 +227,17 @@ def expert_episodes(env: gym.Env, episodes: int, seed: int = 0,
 
 
 def record(env_id: str, episodes: int, out: str | Path, seed: int = 0, env_kwargs: dict | None = None,
-           progress: bool = True) -> dict:
-    """Run ``episodes`` expert episodes of ``env_id`` (env seeds ``seed, seed + 1, ...``) and save them to ``out``.
+           progress: bool = True, expert: str = "clock", action_noise: float = 0.0) -> dict:
+    """Run ``episodes`` expert episodes of ``env_id`` (env seeds ``seed, seed + 1, ...``; ``expert`` and
+    ``action_noise`` as :func:`expert_episodes`) and save them to ``out``.
 
     The ``.npz`` holds, over all T steps concatenated: ``observations (T, D) float32`` (the observation each
     action was taken on; for Dict spaces one array per key, ``observations_<key>``), ``next_observations``
     likewise, ``actions (T, 6) float32``, ``rewards (T,) float64``, ``tip_forces (T,) float64`` (N),
     ``tissue_costs (T,) float64``, ``terminated (T,) bool``, ``truncated (T,) bool``, ``episode_starts (E,)
     int64`` (index of each episode's first step), ``episode_lengths (E,) int64``, ``episode_success (E,)
-    bool``, ``episode_seeds (E,) int64``, and ``env_id``. :func:`record_minari` writes the same episodes as a
-    Minari dataset.
+    bool``, ``episode_seeds (E,) int64``, and ``env_id``; with ``action_noise`` also ``expert_actions (T, 6)
+    float32``, the expert's own actions. :func:`record_minari` writes the same episodes as a Minari dataset.
 
     Returns:
         ``{episodes, steps, success_rate, out}``.
@@ -223,13 +249,14 @@ def record(env_id: str, episodes: int, out: str | Path, seed: int = 0, env_kwarg
     next_rows: list = []
     columns: dict[str, list] = {k: [] for k in ("actions", "rewards", "tip_forces", "tissue_costs", "terminated",
                                                  "truncated")}
-    starts, lengths, success, seeds = [], [], [], []
-    for episode in expert_episodes(env, episodes, seed, progress):
+    starts, lengths, success, seeds, chosen = [], [], [], [], []
+    for episode in expert_episodes(env, episodes, seed, progress, expert, action_noise):
         starts.append(len(columns["actions"]))
         seeds.append(episode.seed)
         obs_rows += [episode.reset_obs, *episode.observations[:-1]]
         next_rows += episode.observations
         columns["actions"] += episode.actions
+        chosen += episode.expert_actions
         columns["rewards"] += episode.rewards
         columns["tip_forces"] += [float(i.get("tip_force", 0.0)) for i in episode.infos]
         columns["tissue_costs"] += [float(i.get("cost", 0.0)) for i in episode.infos]
@@ -251,6 +278,8 @@ def record(env_id: str, episodes: int, out: str | Path, seed: int = 0, env_kwarg
         "episode_seeds": np.asarray(seeds, dtype=np.int64),
         "env_id": np.asarray(env_id),
     }
+    if chosen:
+        arrays["expert_actions"] = np.asarray(chosen, dtype=np.float32)
     if isinstance(obs_rows[0], dict):
         for key in obs_rows[0]:
             arrays[f"observations_{key}"] = np.asarray([o[key] for o in obs_rows], dtype=np.float32)
@@ -268,8 +297,10 @@ def record(env_id: str, episodes: int, out: str | Path, seed: int = 0, env_kwarg
 def record_minari(env_id: str, episodes: int, dataset_id: str | None = None, seed: int = 0,
                   env_kwargs: dict | None = None, root: str | Path | None = None, progress: bool = True,
                   author: str | None = None, author_email: str | None = None,
-                  code_permalink: str | None = None) -> dict:
-    """Run ``episodes`` expert episodes of ``env_id`` (env seeds ``seed, seed + 1, ...``) and write them as the
+                  code_permalink: str | None = None, expert: str = "clock", action_noise: float = 0.0) -> dict:
+    """Run ``episodes`` expert episodes of ``env_id`` (env seeds ``seed, seed + 1, ...``; ``expert`` and
+    ``action_noise`` as :func:`expert_episodes`, the expert's own actions then stored as the info
+    :data:`~suture_gym.baselines.datasets.EXPERT_ACTION_KEY`) and write them as the
     Minari dataset ``dataset_id`` (default :func:`suture_gym.baselines.datasets.default_dataset_id`) under
     :func:`suture_gym.baselines.datasets.datasets_root` ``(root)`` with
     :func:`suture_gym.baselines.datasets.write_minari`; needs ``pip install 'suture_gym[data]'``.
@@ -294,12 +325,14 @@ def record_minari(env_id: str, episodes: int, dataset_id: str | None = None, see
 
     dataset_id = dataset_id or default_dataset_id(env_id)
     env = gym.make(env_id, **(env_kwargs or {}))
-    recorded = list(expert_episodes(env, episodes, seed, progress))
+    recorded = list(expert_episodes(env, episodes, seed, progress, expert, action_noise))
     success = [bool(e.infos[-1].get("is_success", False)) for e in recorded]
+    name = f"suture_gym.baselines.expert.{EXPERTS[expert].__name__}"
+    noise = f", Gaussian action noise of std {action_noise:g}" if action_noise > 0.0 else ""
     folder = write_minari(
-        dataset_id, recorded, env, root=root, algorithm_name="suture_gym.baselines.expert.ExpertPolicy", author=author,
+        dataset_id, recorded, env, root=root, algorithm_name=name, author=author,
         author_email=author_email, code_permalink=code_permalink,
-        description=f"Scripted-expert (suture_gym.baselines.expert.ExpertPolicy) demonstrations of {env_id}, env "
+        description=f"Scripted-expert ({name}{noise}) demonstrations of {env_id}, env "
                     f"seeds {seed}-{seed + episodes - 1}; per-step infos {sorted(INFO_KEYS)}")
     env.close()
     return {"episodes": episodes, "steps": sum(len(e.actions) for e in recorded),
@@ -312,6 +345,11 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--env", required=True, help="env id, e.g. SutureGym/NeedleInsert-v3")
     parser.add_argument("--episodes", type=int, default=10)
     parser.add_argument("--seed", type=int, default=0, help="env seed of the first episode")
+    parser.add_argument("--config", default=None, help="env config (a shipped name or a YAML path)")
+    parser.add_argument("--expert", choices=sorted(EXPERTS), default="clock",
+                        help="the scripted expert: clock (ExpertPolicy) or feedback (FeedbackExpert)")
+    parser.add_argument("--action-noise", type=float, default=0.0,
+                        help="std of Gaussian noise added to the executed actions (the expert's are recorded too)")
     where = parser.add_mutually_exclusive_group(required=True)
     where.add_argument("--out", help="output .npz path")
     where.add_argument("--minari", nargs="?", const="", metavar="DATASET_ID",
@@ -319,13 +357,16 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--root", default=None,
                         help="Minari datasets folder (default: $MINARI_DATASETS_PATH, else ~/.minari/datasets)")
     args = parser.parse_args(argv)
+    env_kwargs = {"config": args.config} if args.config is not None else None
     if args.minari is None:
         if args.root is not None:
             parser.error("--root applies to --minari only")
-        summary = record(args.env, args.episodes, args.out, seed=args.seed)
+        summary = record(args.env, args.episodes, args.out, seed=args.seed, env_kwargs=env_kwargs,
+                         expert=args.expert, action_noise=args.action_noise)
         where_to = summary["out"]
     else:
-        summary = record_minari(args.env, args.episodes, args.minari or None, seed=args.seed, root=args.root)
+        summary = record_minari(args.env, args.episodes, args.minari or None, seed=args.seed, root=args.root,
+                                env_kwargs=env_kwargs, expert=args.expert, action_noise=args.action_noise)
         where_to = f"Minari dataset {summary['dataset_id']!r} in {summary['root']}"
     print(f"{summary['episodes']} episodes, {summary['steps']} steps, success rate "
           f"{summary['success_rate']:.2f} -> {where_to}")

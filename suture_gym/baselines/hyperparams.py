@@ -33,8 +33,11 @@ SCRIPT_KEYS = ("n_timesteps", "policy", "n_envs", "normalize", "env_kwargs", "be
 #: Keys of ``behaviour_cloning`` and their defaults: expert episodes recorded (env seeds ``seed + 2000 ...``),
 #: passes over them, minibatch size, Adam step size, and ``dataset``: the id of a Minari dataset of the same env
 #: id to clone instead of recording (:func:`suture_gym.baselines.imitation.load_minari_demos`; looked up in
-#: ``$MINARI_DATASETS_PATH``, else ``~/.minari/datasets``).
-BC_KEYS = {"expert_episodes": 40, "epochs": 30, "batch_size": 256, "learning_rate": 1e-3, "dataset": None}
+#: ``$MINARI_DATASETS_PATH``, else ``~/.minari/datasets``); ``expert`` and ``action_noise``: the recording's
+#: scripted expert and the noise added to the actions it executes
+#: (:func:`suture_gym.baselines.expert.expert_episodes`).
+BC_KEYS = {"expert_episodes": 40, "epochs": 30, "batch_size": 256, "learning_rate": 1e-3, "dataset": None,
+           "expert": "clock", "action_noise": 0.0}
 
 _ACTIVATIONS = ("tanh", "relu", "elu", "leaky_relu")
 
@@ -112,6 +115,11 @@ def _behaviour_cloning(value: Any) -> dict[str, Any]:
             raise ValueError(f"behaviour_cloning.{key} must be an integer >= 1, got {out[key]!r}")
     if not isinstance(out["learning_rate"], (int, float)) or not out["learning_rate"] > 0:
         raise ValueError(f"behaviour_cloning.learning_rate must be > 0, got {out['learning_rate']!r}")
+    if out["expert"] not in ("clock", "feedback"):
+        raise ValueError(f"behaviour_cloning.expert must be 'clock' or 'feedback', got {out['expert']!r}")
+    noise = out["action_noise"]
+    if isinstance(noise, bool) or not isinstance(noise, (int, float)) or not 0.0 <= noise < 1.0:
+        raise ValueError(f"behaviour_cloning.action_noise must be a standard deviation in [0, 1), got {noise!r}")
     if out["dataset"] is not None and not (isinstance(out["dataset"], str) and out["dataset"]):
         raise ValueError(f"behaviour_cloning.dataset must be a Minari dataset id, got {out['dataset']!r}")
     return out

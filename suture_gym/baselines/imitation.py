@@ -75,15 +75,19 @@ def load_minari_demos(dataset, root: str | Path | None = None) -> dict[str, np.n
         As :func:`load_demos`, over all T steps concatenated: ``observations (T, D) float32`` (the observation each
         action was taken on), ``next_observations (T, D) float32``, ``actions (T, A) float32``, ``rewards (T,)
         float64``, ``terminated (T,) bool``, ``truncated (T,) bool``, ``episode_starts (E,) int64``,
-        ``episode_lengths (E,) int64``; and, when the dataset records those infos, ``tip_forces (T,) float64``
+        ``episode_lengths (E,) int64``; and, when the dataset records those infos, ``expert_actions (T, A)
+        float32`` (:data:`~suture_gym.baselines.datasets.EXPERT_ACTION_KEY`), ``tip_forces (T,) float64``
         (N), ``tissue_costs (T,) float64`` and ``episode_success (E,) bool`` (the last step's ``is_success``).
     """
+    from suture_gym.baselines.datasets import EXPERT_ACTION_KEY
+
     if isinstance(dataset, str):
         from suture_gym.baselines.datasets import load_dataset
 
         dataset = load_dataset(dataset, root)
-    columns: dict[str, list] = {k: [] for k in ("observations", "next_observations", "actions", "rewards",
-                                                 "terminated", "truncated", "tip_forces", "tissue_costs")}
+    columns: dict[str, list] = {k: [] for k in ("observations", "next_observations", "actions", "expert_actions",
+                                                 "rewards", "terminated", "truncated", "tip_forces",
+                                                 "tissue_costs")}
     starts, lengths, success = [], [], []
     for episode in dataset.iterate_episodes():
         if isinstance(episode.observations, dict):
@@ -98,6 +102,8 @@ def load_minari_demos(dataset, root: str | Path | None = None) -> dict[str, np.n
         columns["terminated"].append(episode.terminations)
         columns["truncated"].append(episode.truncations)
         infos = episode.infos or {}
+        if EXPERT_ACTION_KEY in infos:
+            columns["expert_actions"].append(np.asarray(infos[EXPERT_ACTION_KEY])[1:])
         for column, key in (("tip_forces", "tip_force"), ("tissue_costs", "cost")):
             if key in infos:
                 columns[column].append(np.asarray(infos[key])[1:])  # infos[0] is the reset's
@@ -106,6 +112,7 @@ def load_minari_demos(dataset, root: str | Path | None = None) -> dict[str, np.n
     if not starts:
         raise ValueError(f"Minari dataset {dataset.id!r} holds no episodes")
     dtypes = {"observations": np.float32, "next_observations": np.float32, "actions": np.float32,
+              "expert_actions": np.float32,
               "rewards": np.float64, "terminated": bool, "truncated": bool, "tip_forces": np.float64,
               "tissue_costs": np.float64}
     demos = {key: np.concatenate(parts).astype(dtypes[key]) for key, parts in columns.items()
@@ -125,7 +132,9 @@ def behaviour_clone(model, demos: dict[str, np.ndarray], epochs: int = 30, batch
         model: an SB3 on-policy model (``PPO`` or ``A2C``) built on the training env; if that env is a
             ``VecNormalize`` its statistics are updated with the demonstrations.
         demos: arrays from :func:`load_demos` or :func:`load_minari_demos` (``observations (T, D)``,
-            ``actions (T, A)``, ``rewards (T,)``, ``episode_starts (E,)``).
+            ``actions (T, A)``, ``rewards (T,)``, ``episode_starts (E,)``); the policy is fitted to
+            ``expert_actions (T, A)`` where they are recorded (the demonstrator's choices, where noise was added
+            to the actions taken), else to ``actions``.
         epochs: passes over the demonstrations (>= 1).
         batch_size: minibatch size (>= 1).
         learning_rate: Adam step size.
@@ -151,7 +160,7 @@ def behaviour_clone(model, demos: dict[str, np.ndarray], epochs: int = 30, batch
         raise ValueError("behaviour cloning reads flat state observations (observation.mode 'state'), got a "
                          f"{type(model.observation_space).__name__} observation space")
     obs = np.asarray(demos["observations"], dtype=np.float32)
-    actions = np.asarray(demos["actions"], dtype=np.float32)
+    actions = np.asarray(demos.get("expert_actions", demos["actions"]), dtype=np.float32)
     rewards = np.asarray(demos["rewards"], dtype=np.float64)
     starts = np.asarray(demos["episode_starts"], dtype=np.int64)
     if obs.shape != (len(actions), *model.observation_space.shape) or actions.shape[1:] != model.action_space.shape:

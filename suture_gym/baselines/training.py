@@ -280,7 +280,8 @@ def _warm_start(model, env_id: str, env_kwargs: dict, settings: dict, run_dir: P
         from suture_gym.baselines.expert import record
 
         recorded = record(env_id, settings["expert_episodes"], run_dir / "demos.npz", seed=seed + 2000,
-                          env_kwargs=env_kwargs, progress=progress)
+                          env_kwargs=env_kwargs, progress=progress, expert=settings["expert"],
+                          action_noise=settings["action_noise"])
         demos = load_demos(recorded["out"])
         source = {"dataset": None}
     fit = behaviour_clone(model, demos, epochs=settings["epochs"], batch_size=settings["batch_size"],
