@@ -124,3 +124,29 @@ def test_a_full_action_dent_at_the_pad_edge_does_not_diverge():
         if terminated or truncated:
             break
     assert len(speeds) == len(EDGE_DENT_CORNERS) and max(speeds) < 2.0, speeds  # was 15.4 m/s, flagged at 20
+
+
+def test_a_tip_anchored_after_its_taper_pressed_the_wound_does_not_diverge(monkeypatch):
+    """The fuzzer's WoundClosure-v3 episode (``scripts/fuzz.py --seed 2``: wrench mode, random in-box actions,
+    episode seed 210341279) that diverged at step 156: the taper's contact rows read 49 N on the wound's face, the
+    tip was anchored there in the next substep and that force was taken for the deflection of the anchor's spring,
+    which put the anchor 4 cm out of the surface; its row pulled the patch 9 mm in one substep and inverted the
+    tets under it."""
+    from conftest import import_script
+
+    fuzz = import_script(monkeypatch, "fuzz")
+    case = next(c for c in fuzz.cases() if c["id"] == "SutureGym/WoundClosure-v3" and c["action_mode"] == "wrench"
+                and c["config"] == "wound_closure.yaml")
+    episode = fuzz.Episode(case, "random", 210341279, 200)
+    env = fuzz._make(case)
+    env.reset(seed=episode.seed)
+    actions = episode.actions(env)
+    sim = env.unwrapped.sim
+    speeds = []
+    for _ in range(160):
+        *_, terminated, truncated, info = env.step(actions())
+        assert not info["diverged"], len(speeds) + 1
+        speeds.append(float(np.abs(sim.state.tissue.particle_qd).max()))
+        if terminated or truncated:
+            break
+    assert len(speeds) == 160 and max(speeds) < 2.0, max(speeds)
