@@ -202,3 +202,35 @@ def test_backing_out_releases_the_path_and_a_later_push_punctures_again():
     assert c.punctures == 1 and c.path_count == 0
     _push(scene, 0.1, 0.4, solver)  # above it: a new puncture
     assert c.punctures == 2 and c.punctured
+
+
+@pytest.mark.parametrize("slid", [False, True])
+def test_a_new_anchor_keeps_a_spring_deflection_only_after_the_tip_slid(slid):
+    """A tip anchored anew while the last tip force was read by the taper's rigid contact rows (no anchor, so no
+    spring was deflected) gets its anchor at the surface; after a slide off an anchor it keeps that spring's
+    deflection: the anchor is set ``alpha F`` out along the normal, so the tip stays that far below it."""
+    pad = suturing_pad(size=(0.02, 0.02, 0.004), cells=(10, 10, 2), material=TissueMaterial(youngs_modulus=1.5e5,
+                                                                                            poisson_ratio=0.49))
+    needle = NeedleModel.from_shape()
+    pose = needle_circle_pose(needle, (0.01, 0.01 + needle.shape.curvature_radius, 0.0045), WOUND_ARC_AXIS,
+                              WOUND_ARC_U, wound_tip_angle(needle))  # fmt: skip
+    scene = add_strands(pad, pose, coupling_params=_point_tip(1.0e-3))
+    model, state = scene.model.coupling, scene.state.coupling
+    tissue_q = scene.state.tissue.particle_q
+    corners = model.tissue_rest_q[model.surface.tri_vertices]
+    on_top = np.all(corners[:, :, 2] > 0.0039, axis=1)
+    off_centre = np.linalg.norm(corners.mean(axis=1)[:, :2] - 0.01, axis=1)
+    tri = int(np.argmin(np.where(on_top, off_centre, np.inf)))
+    state.tip_anchor_tri = tri
+    state.tip_anchor_bary[:] = (0.2, 0.3, 0.5)
+    state.tip_force = 49.0  # N, what the taper's rows read in the fuzzer's WoundClosure episode
+    state.tip_slid = slid
+    anchor = state.tip_anchor_bary @ tissue_q[model.surface.tri_vertices[tri]]
+    eps = model.params.resistance_eps
+    tip = anchor + np.array([0.0, 0.0, eps])  # resting on the surface, normal +z
+    tip_patch(model, state, tissue_q, tip)
+    count = state.tip_patch_count
+    held = state.tip_patch_weight[:count] @ tissue_q[state.tip_patch_vertex[:count]] + state.tip_patch_offset
+    deflection = state.tip_patch_compliance * state.tip_force if slid else 0.0
+    assert state.tip_patch_compliance > 0.0
+    np.testing.assert_allclose(held, anchor + np.array([0.0, 0.0, deflection]), atol=1e-12)

@@ -246,6 +246,9 @@ class CouplingState:
             the row's series compliance, m/N (:func:`tip_series_compliance`).
         tip_force: force the tip region's contact rows exerted against the tip's direction of travel in the last
             substep, N (the puncture test, :func:`coupling_finish`).
+        tip_slid: the tip was anchored in the last substep and slid, letting go of its anchor
+            (:func:`coupling_finish`): ``tip_force`` is then its anchor spring's load, whose deflection the next
+            anchor keeps (:func:`~suture_gym.sim.coupling.paths.tip_patch`).
         friction_force: total axial friction force on the needle in the last substep, N.
         cut_force: the cutting force that resisted the tip's advance in the last substep, N
             (``cutting_force`` while the tip cuts, 0 while it does not advance).
@@ -285,6 +288,7 @@ class CouplingState:
     path_count: int = 0
     pathnode_count: int = 0
     tip_force: float = 0.0
+    tip_slid: bool = False
     friction_force: float = 0.0
     cut_force: float = 0.0
     max_force: float = 0.0

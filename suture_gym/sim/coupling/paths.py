@@ -244,10 +244,14 @@ def tip_patch(model: CouplingModel, state: CouplingState, tissue_q: np.ndarray, 
     :data:`TIP_PATCH_CAPACITY`), weighted by their lumped areas (a uniform pressure; weights sum to 1), or the
     anchor triangle's vertices with its barycentrics where no vertex is that near; the anchor triangle's series
     compliance ``alpha``; and the offset that puts the patch's weighted mean on the anchor at ``tissue_q``
-    (N, 3) m. A tip anchored anew while it presses on the surface (it slid: the last tip force ``F`` > 0) keeps
-    its spring's deflection: the anchor is moved along the surface normal ``n`` there until the tip at ``tip``
-    (3,) m sits ``alpha F - eps`` below it, ``(tip - p) . n = eps - alpha F``, instead of jumping back to the
-    surface. Writes the ``tip_patch_*`` fields of ``state``."""
+    (N, 3) m. A tip anchored anew after it slid off its last anchor (``state.tip_slid``: that anchor's spring
+    carried the last tip force ``F`` > 0) keeps the spring's deflection: the anchor is moved along the surface
+    normal ``n`` there until the tip at ``tip`` (3,) m sits ``alpha F - eps`` below it, ``(tip - p) . n = eps -
+    alpha F``, instead of jumping back to the surface. A tip force read without an anchor (the rigid contact rows
+    of the nodes behind the point) deflected no spring, and that anchor starts at the surface: taken for a
+    spring's load, 49 N on the taper's rows put a new anchor ``alpha F`` = 4 cm under the surface of a pad 1 cm
+    thick, and its row pulled the patch 9 mm into the tissue in one substep. Writes the ``tip_patch_*`` fields
+    of ``state``."""
     tri = state.tip_anchor_tri
     corners = model.surface.tri_vertices[tri]
     rest = model.tissue_rest_q
@@ -268,7 +272,7 @@ def tip_patch(model: CouplingModel, state: CouplingState, tissue_q: np.ndarray, 
     state.tip_patch_weight[count:] = 0.0
     anchor = state.tip_anchor_bary @ tissue_q[corners]
     compliance = float(model.tri_tip_compliance[tri])
-    if state.tip_force > 0.0:
+    if state.tip_slid and state.tip_force > 0.0:
         surface = model.surface
         n = surface_normal(
             tri, state.tip_anchor_bary, surface.tri_vertices, surface.vertex_tri_start, surface.vertex_tri_index,

@@ -42,6 +42,7 @@ def coupling_finish(
     )  # fmt: skip
     if slid:
         state.tip_anchor_tri = -1
+    state.tip_slid = bool(slid)
     state.tip_force = max(0.0, load * inv_dt2)
     state.friction_force = friction * inv_dt2
     state.cut_force = -float(work.cut_rows[4][0]) * inv_dt2
