@@ -13,14 +13,15 @@ pytest.importorskip("stable_baselines3")
 import suture_gym  # noqa: E402,F401
 from suture_gym.baselines.evaluation import make_policy, model_vecnormalize, run_config, trained_env_kwargs  # noqa: E402
 
-MODELS = sorted((Path(__file__).resolve().parents[1] / "models").glob("*/seed*/final_model.zip"))
+ROOT = Path(__file__).resolve().parents[1] / "models"
+MODELS = sorted(ROOT.glob("**/seed*/final_model.zip"))
 
 
 def test_there_are_committed_models():
     assert MODELS, "models/ holds no final_model.zip"
 
 
-@pytest.mark.parametrize("path", MODELS, ids=lambda p: f"{p.parent.parent.name}-{p.parent.name}")
+@pytest.mark.parametrize("path", MODELS, ids=lambda p: "-".join(p.parent.relative_to(ROOT).parts))
 def test_committed_model_runs_with_its_statistics(path):
     config = run_config(path)
     evaluation = json.loads((path.parent / "evaluation.json").read_text())
