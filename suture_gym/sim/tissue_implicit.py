@@ -535,8 +535,8 @@ class ImplicitTissue:
 
         A BDF2 substep that rows touch becomes an implicit-Euler one (:meth:`_begin_euler`): with BDF2's target the
         rows' impulses reach the tissue's momentum over the following substeps, not in the one they act in, and
-        under bang-bang needle forces the rigid rows then pushed against momentum still on its way (6 divergences
-        in 24,000 fuzzed steps of NeedleInsert and WoundClosure, none with implicit Euler)."""
+        under bang-bang needle forces the rigid rows then push against momentum still on its way and can diverge
+        (docs/notes/tissue_integrator.md)."""
         self._impulse[...] = 0.0
         vertices, same = _free_touched(touched, self._free_particle, self.compliance[2])
         if self.substep_scheme == "bdf2" and vertices.size:
@@ -663,8 +663,7 @@ class QuasiNewton(ImplicitTissue):
         The rows' impulses move the tissue by the rest system's linear response, and the forces they read are
         ``A0`` times the move the solve made away from the warm start: exact for one step of ``x <- x - A0^-1 grad
         Phi`` (the rows then balance the true elastic force), but not for a converged solve under large local
-        strain (a 1 N tip on a 100 kPa pad, dent a cell: the base carried 2.8% more than the tip's force and the
-        tissue's weight, and the solves took 15 iterations a substep).
+        strain, where the supports would carry more than the load (docs/notes/tissue_integrator.md).
         """
         if self.tolerance is None or self.compliance[2].size:
             phi = self._iterate(q, iterations if self.tolerance is None else 1, converge)

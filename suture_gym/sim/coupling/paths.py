@@ -248,10 +248,8 @@ def tip_patch(model: CouplingModel, state: CouplingState, tissue_q: np.ndarray, 
     carried the last tip force ``F`` > 0) keeps the spring's deflection: the anchor is moved along the surface
     normal ``n`` there until the tip at ``tip`` (3,) m sits ``alpha F - eps`` below it, ``(tip - p) . n = eps -
     alpha F``, instead of jumping back to the surface. A tip force read without an anchor (the rigid contact rows
-    of the nodes behind the point) deflected no spring, and that anchor starts at the surface: taken for a
-    spring's load, 49 N on the taper's rows put a new anchor ``alpha F`` = 4 cm under the surface of a pad 1 cm
-    thick, and its row pulled the patch 9 mm into the tissue in one substep. Writes the ``tip_patch_*`` fields
-    of ``state``."""
+    of the nodes behind the point) deflected no spring, and that anchor starts at the surface. Writes the
+    ``tip_patch_*`` fields of ``state``."""
     tri = state.tip_anchor_tri
     corners = model.surface.tri_vertices[tri]
     rest = model.tissue_rest_q
