@@ -44,6 +44,8 @@ def test_resolve_turns_strings_into_objects():
         ({"behaviour_cloning": {"epochs": 0}}, "behaviour_cloning.epochs"),
         ({"behaviour_cloning": {"learning_rate": -1.0}}, "behaviour_cloning.learning_rate"),
         ({"behaviour_cloning": {"dataset": 3}}, "behaviour_cloning.dataset"),
+        ({"behaviour_cloning": {"expert": "oracle"}}, "behaviour_cloning.expert"),
+        ({"behaviour_cloning": {"action_noise": 1.5}}, "behaviour_cloning.action_noise"),
         ({"env_kwargs": "config.yaml"}, "env_kwargs"),
     ],
 )
@@ -60,7 +62,8 @@ def test_env_config_by_name_is_the_shipped_file(name, tmp_path, monkeypatch):
     script, _ = resolve({**TINY, "env_kwargs": {"config": name}, "behaviour_cloning": {"epochs": 5}})
     assert script["env_kwargs"]["config"] == str(ENV_DIR / "needle_insert.yaml")
     assert script["behaviour_cloning"] == {"expert_episodes": 40, "epochs": 5, "batch_size": 256,
-                                           "learning_rate": 1e-3, "dataset": None}
+                                           "learning_rate": 1e-3, "dataset": None, "expert": "clock",
+                                           "action_noise": 0.0}
 
 
 def test_missing_policy_or_env_entry_is_named(tmp_path):
